@@ -1,0 +1,200 @@
+"""The ``carotid`` command line: one subcommand per pipeline stage.
+
+Bad input ends with one line on stderr and exit status 2; stages not built
+yet say so and exit 2 as well.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from carotid import __version__
+from carotid.errors import CarotidError
+
+PLANNED = {
+    "centerlines": "centerlines and stenosis grading (issue #3)",
+    "surface": "the clipped, remeshed lumen surface (issue #3)",
+    "mesh": "the boundary-layer volume mesh (issue #4)",
+    "simulate": "the CBS flow solver (issue #5)",
+    "verify": "the analytic verification cases (issue #5)",
+    "run": "the scan-to-report chain (issue #6)",
+    "batch": "cohorts on Dask (issue #6)",
+    "report": "the HTML report (issue #6)",
+}
+
+
+def _progress_bar(label: str):
+    """A tqdm bar on stderr (silent when stderr is not a terminal) and its level-set callback."""
+    from tqdm import tqdm
+
+    bar = tqdm(desc=label, unit="it", file=sys.stderr, disable=None, dynamic_ncols=True)
+
+    def update(iterations: int, changed: int, front: int) -> None:
+        bar.update(iterations - bar.n)
+        bar.set_postfix(front=front, changed=changed, refresh=False)
+
+    return bar, update
+
+
+def _segment_parameters(args):
+    from carotid.segment import SegmentParameters
+
+    fields = {
+        "alpha": args.alpha, "kernel_radius_mm": args.kernel_radius, "sigma_mm": args.sigma,
+        "refine_radius_mm": args.refine_radius, "denoise_iterations": args.denoise,
+        "seed_radius_mm": args.seed_radius, "max_iterations": args.max_iterations,
+    }
+    if args.hu_window:
+        fields["hu_low"], fields["hu_high"] = args.hu_window
+    return SegmentParameters(**{k: v for k, v in fields.items() if v is not None}).validate()
+
+
+def cmd_phantom(args) -> int:
+    from carotid.phantom import make_phantom, write_phantom
+
+    phantom = make_phantom(stenosis=args.stenosis, noise=args.noise, seed=args.seed,
+                           spacing=tuple(args.spacing), extent=tuple(args.extent))
+    out = write_phantom(phantom, args.out_dir)
+    sten = phantom.info["stenosis"]
+    print(f"phantom written to {out} (ICA stenosis: {100 * sten['area_reduction']:.0f}% by area, "
+          f"NASCET {100 * sten['nascet']:.0f}%; CCA seed {np.round(phantom.info['seeds_mm']['CCA'], 1).tolist()} mm)")
+    return 0
+
+
+def run_segmentation(image_path, case_dir, seeds=None, init_mask_path=None, params=None):
+    """Read an image, segment it with a progress bar and write ``CASE_DIR/segmentation``.
+
+    Returns
+    -------
+    (Segmentation, Path)
+    """
+    from carotid.io import read_image
+    from carotid.segment import segment, write_segmentation
+
+    volume = read_image(image_path)
+    init_mask = None
+    if init_mask_path is not None:
+        init_mask = read_image(init_mask_path).array > 0
+    bar, update = _progress_bar("segment")
+    try:
+        result = segment(volume, seeds_xyz=seeds, init_mask=init_mask, params=params, progress=update)
+    finally:
+        bar.close()
+    return result, write_segmentation(result, case_dir)
+
+
+def cmd_segment(args) -> int:
+    result, out = run_segmentation(args.image, args.output, seeds=args.seed, init_mask_path=args.init_mask,
+                                   params=_segment_parameters(args))
+    rep = result.report
+    state = "converged" if rep["converged"] else "NOT converged (raise --max-iterations)"
+    print(f"segmentation written to {out}: lumen {rep['lumen_volume_mm3']:.0f} mm^3, "
+          f"{sum(rep['iterations'])} iterations, {state}, {rep['seconds']['total_s']:.1f} s")
+    return 0
+
+
+def cmd_demo(args) -> int:
+    from carotid.io import read_image
+    from carotid.phantom import make_phantom, write_phantom
+    from carotid.segment import SegmentParameters
+    from carotid.segment.metrics import dice
+
+    out = Path(args.output)
+    print(f"1. phantom: a stenosed carotid bifurcation CTA with vein, bone and calcium -> {out / 'phantom'}")
+    write_phantom(make_phantom(stenosis=0.7, noise=20.0, seed=0), out / "phantom")
+    print("2. segment: GPF level set, automatic initialisation (no seed)")
+    result, seg_dir = run_segmentation(out / "phantom" / "image.nii.gz", out / "case", params=SegmentParameters())
+    truth = read_image(out / "phantom" / "truth_mask.nii.gz", dtype=np.uint8).array > 0
+    print(f"   -> {seg_dir}: lumen {result.report['lumen_volume_mm3']:.0f} mm^3, "
+          f"Dice against the truth {dice(result.mask.array > 0, truth):.3f}, "
+          f"{result.report['seconds']['total_s']:.1f} s")
+    for number, stage in enumerate(["centerlines", "surface", "mesh", "simulate", "report"], start=3):
+        print(f"{number}. {stage}: not available yet ({PLANNED[stage]})")
+    print(f"results are in {out.resolve()}")
+    return 0
+
+
+def cmd_planned(args) -> int:
+    raise CarotidError(f"'{args.command}' is not available yet: {PLANNED[args.command]} is still to be built")
+
+
+def _add_segment_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--seed", nargs=3, type=float, action="append", metavar=("X", "Y", "Z"),
+                   help="seed point in world mm (LPS), repeatable; none: automatic initialisation")
+    p.add_argument("--init-mask", type=Path, metavar="FILE",
+                   help="initial region (image on the same grid, nonzero inside); may cross the boundary")
+    p.add_argument("--alpha", type=float, help="curvature weight of eq. (1), 0..1 (default 0.2)")
+    p.add_argument("--hu-window", nargs=2, type=float, metavar=("LOW", "HIGH"),
+                   help="HU window; brighter voxels are folded dark (default -100 550)")
+    p.add_argument("--kernel-radius", type=float, metavar="MM", help="GPF kernel support (default 10 mm)")
+    p.add_argument("--sigma", type=float, metavar="MM", help="pre-smoothing in mm (default 0.6)")
+    p.add_argument("--refine-radius", type=float, metavar="MM",
+                   help="kernel of the refining stage, 0 to skip it (default 1.5 mm)")
+    p.add_argument("--denoise", type=int, metavar="N", help="curvature anisotropic diffusion iterations before the potential (default 0: off)")
+    p.add_argument("--seed-radius", type=float, metavar="MM", help="radius of each seed sphere (default 1.5)")
+    p.add_argument("--max-iterations", type=int, metavar="N", help="per stage (default 4000)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of the ``carotid`` command."""
+    parser = argparse.ArgumentParser(prog="carotid", description="CT angiogram of the neck -> carotid blood flow.")
+    parser.add_argument("--version", action="version", version=f"carotid {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("demo", help="run every available stage on a built-in synthetic case")
+    p.add_argument("-o", "--output", default="carotid-demo", help="output folder (default ./carotid-demo)")
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("phantom", help="write a synthetic carotid CTA with its ground truth")
+    p.add_argument("out_dir", type=Path)
+    p.add_argument("--stenosis", type=float, default=0.7, help="ICA area reduction, 0..0.95 (default 0.7)")
+    p.add_argument("--noise", type=float, default=20.0, help="noise standard deviation in HU (default 20)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--spacing", nargs=3, type=float, default=(0.45, 0.45, 0.625), metavar=("X", "Y", "Z"),
+                   help="voxel size in mm (default 0.45 0.45 0.625)")
+    p.add_argument("--extent", nargs=3, type=float, default=(44.0, 44.0, 75.0), metavar=("X", "Y", "Z"),
+                   help="field of view in mm (default 44 44 75)")
+    p.set_defaults(func=cmd_phantom)
+
+    p = sub.add_parser("segment", help="segment the arterial lumen (GPF level set)")
+    p.add_argument("image", type=Path, help="CT image: DICOM folder, NIfTI, NRRD or MHA")
+    p.add_argument("-o", "--output", type=Path, required=True, metavar="CASE_DIR")
+    _add_segment_options(p)
+    p.set_defaults(func=cmd_segment)
+
+    for name, what in PLANNED.items():
+        p = sub.add_parser(name, help=f"{what} (not available yet)")
+        p.add_argument("args", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+        p.set_defaults(func=cmd_planned)
+    return parser
+
+
+def main(argv=None) -> int:
+    """Entry point of the ``carotid`` console script."""
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except CarotidError as exc:
+        print(f"carotid: error: {exc}", file=sys.stderr)
+        return 2
+    except MemoryError:
+        print("carotid: error: out of memory (try a smaller region of interest)", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("carotid: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # an internal error: one line, the traceback on request
+        if os.environ.get("CAROTID_DEBUG"):
+            raise
+        print(f"carotid: internal error: {type(exc).__name__}: {exc} (set CAROTID_DEBUG=1 for the traceback)",
+              file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

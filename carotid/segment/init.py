@@ -1,0 +1,114 @@
+"""Initial level sets: seed spheres, a given initial region, or automatic from the image."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from carotid.errors import CarotidError
+from carotid.io import Volume
+
+
+def grid_mm(shape) -> list[np.ndarray]:
+    """Open grid of index coordinates (broadcastable (nk,1,1), (1,nj,1), (1,1,ni)), float32."""
+    return [np.arange(n, dtype=np.float32).reshape([-1 if a == b else 1 for b in range(3)])
+            for a, n in enumerate(shape)]
+
+
+def seed_levelset(volume: Volume, seeds_xyz: np.ndarray, radius_mm: float) -> np.ndarray:
+    """Signed distance (mm) to the union of spheres of ``radius_mm`` around world seed points.
+
+    Parameters
+    ----------
+    volume : Volume
+        Grid on which the level set lives.
+    seeds_xyz : ndarray, shape (m, 3)
+        Seed points (x, y, z) in world mm.
+    radius_mm : float
+
+    Returns
+    -------
+    ndarray, shape volume.array.shape, float32, negative inside the spheres
+
+    Raises
+    ------
+    CarotidError
+        If a seed lies outside the image.
+    """
+    seeds_xyz = np.atleast_2d(np.asarray(seeds_xyz, float))
+    outside = ~volume.contains(seeds_xyz)
+    if outside.any():
+        bad = seeds_xyz[outside][0]
+        lo = volume.index_to_world(np.zeros(3))
+        hi = volume.index_to_world(np.asarray(volume.array.shape) - 1)
+        raise CarotidError(f"seed ({bad[0]:.1f}, {bad[1]:.1f}, {bad[2]:.1f}) mm lies outside the image "
+                           f"(corners {np.round(lo, 1).tolist()} and {np.round(hi, 1).tolist()} mm)")
+    h = volume.spacing_kji.astype(np.float32)
+    axes = grid_mm(volume.array.shape)
+    phi = np.full(volume.array.shape, np.inf, np.float32)
+    for kji in volume.world_to_index(seeds_xyz):
+        d2 = sum(((axes[a] - np.float32(kji[a])) * h[a]) ** 2 for a in range(3))
+        np.minimum(phi, np.sqrt(d2) - np.float32(radius_mm), out=phi)
+    return phi
+
+
+def mask_levelset(mask: np.ndarray, spacing_kji) -> np.ndarray:
+    """Approximate signed distance (mm) of a binary region, negative inside, from two EDTs."""
+    mask = np.asarray(mask, bool)
+    if not mask.any():
+        raise CarotidError("the initial region is empty")
+    half = 0.5 * float(np.mean(spacing_kji))
+    d_out = ndimage.distance_transform_edt(~mask, sampling=spacing_kji).astype(np.float32)
+    d_in = ndimage.distance_transform_edt(mask, sampling=spacing_kji).astype(np.float32)
+    return np.where(mask, half - d_in, d_out - half).astype(np.float32)
+
+
+def automatic_region(image01: np.ndarray, ghat: np.ndarray, spacing_kji, excluded: np.ndarray | None = None,
+                     min_volume_mm3: float = 10.0, min_length_mm: float = 10.0, min_depth_mm: float = 1.0,
+                     core: float = -0.5) -> np.ndarray:
+    """Find the arterial lumen's core without a seed.
+
+    Candidates are voxels deep inside bright structures (``ghat < core``),
+    not ``excluded`` (brighter than the HU window), whose windowed intensity
+    is above Otsu's threshold of those voxels.  Their cores (at least
+    ``min_depth_mm`` from the candidates' edge, which removes the thin bright
+    rims that blur leaves around cortical bone and calcium) are split into
+    connected regions; those at least ``min_volume_mm3`` large and
+    ``min_length_mm`` long are kept, and the brightest one (median intensity:
+    in a CT angiogram the arteries carry more contrast than the veins) is
+    returned.
+
+    Returns
+    -------
+    ndarray of bool, same shape
+
+    Raises
+    ------
+    CarotidError
+        If no bright tubular structure is found.
+    """
+    from skimage.filters import threshold_otsu
+
+    spacing_kji = np.asarray(spacing_kji, float)
+    deep = ghat < core
+    if excluded is not None:
+        deep &= ~excluded
+    if deep.sum() < 10:
+        raise CarotidError("automatic initialisation found no bright structure; give a --seed")
+    threshold = threshold_otsu(image01[deep])
+    candidates = deep & (image01 > threshold)
+    depth = ndimage.distance_transform_edt(candidates, sampling=spacing_kji)
+    labels, n = ndimage.label(depth >= min_depth_mm)
+    if n == 0:
+        raise CarotidError("automatic initialisation found no bright structure; give a --seed")
+    index = np.arange(1, n + 1)
+    voxel = float(np.prod(spacing_kji))
+    volumes = ndimage.sum_labels(np.ones_like(labels, np.float32), labels, index) * voxel
+    medians = ndimage.median(image01, labels, index)
+    slices = ndimage.find_objects(labels)
+    lengths = np.array([max((s.stop - s.start) * h for s, h in zip(sl, spacing_kji)) for sl in slices])
+    ok = (volumes >= min_volume_mm3) & (lengths >= min_length_mm)
+    if not ok.any():
+        raise CarotidError("automatic initialisation found no vessel-like structure; give a --seed")
+    best = index[ok][np.argmax(np.asarray(medians)[ok])]
+    return labels == best

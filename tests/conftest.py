@@ -1,0 +1,22 @@
+"""Shared fixtures: phantoms are generated once per session (they take a few seconds each)."""
+
+import functools
+
+import pytest
+
+from carotid.phantom import make_phantom
+
+# Stenosis (area fraction), noise (HU) and random seed of the accuracy phantoms.
+ACCURACY_CASES = [(0.5, 30.0, 2), (0.6, 10.0, 4), (0.7, 20.0, 1), (0.75, 25.0, 7), (0.8, 30.0, 11)]
+
+
+@functools.lru_cache(maxsize=None)
+def phantom(stenosis: float = 0.7, noise: float = 20.0, seed: int = 1):
+    """A cached phantom (do not modify its arrays)."""
+    return make_phantom(stenosis=stenosis, noise=noise, seed=seed)
+
+
+@pytest.fixture
+def small_phantom():
+    """A cached default phantom."""
+    return phantom()

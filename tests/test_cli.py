@@ -1,0 +1,105 @@
+"""The command line: stages end to end, and bad input answered with one line and exit status 2."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from carotid.cli import PLANNED, main
+from carotid.io import read_image, write_image
+from conftest import phantom
+
+
+@pytest.fixture(scope="module")
+def phantom_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("cli") / "phantom"
+    assert main(["phantom", str(out), "--stenosis", "0.6", "--noise", "15", "--seed", "3"]) == 0
+    return out
+
+
+def run_and_capture(capsys, argv):
+    code = main([str(a) for a in argv])
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def test_segment_writes_the_case_folder(phantom_dir, tmp_path, capsys):
+    seed = json.loads((phantom_dir / "phantom.json").read_text())["seeds_mm"]["CCA"]
+    case = tmp_path / "case"
+    code, out, _ = run_and_capture(capsys, ["segment", phantom_dir / "image.nii.gz", "-o", case, "--seed", *seed])
+    assert code == 0 and "segmentation written" in out
+    folder = case / "segmentation"
+    assert sorted(p.name for p in folder.iterdir()) == ["levelset.nii.gz", "mask.nii.gz", "report.json"]
+    levelset = read_image(folder / "levelset.nii.gz")
+    mask = read_image(folder / "mask.nii.gz", dtype=None)
+    image = read_image(phantom_dir / "image.nii.gz")
+    assert mask.array.dtype == np.uint8 and levelset.array.dtype == np.float32
+    assert levelset.spacing == image.spacing and levelset.origin == image.origin
+    truth = read_image(phantom_dir / "truth_mask.nii.gz").array > 0
+    overlap = 2 * np.count_nonzero((mask.array > 0) & truth) / (np.count_nonzero(mask.array) + np.count_nonzero(truth))
+    assert overlap > 0.95
+    report = json.loads((folder / "report.json").read_text())
+    assert report["initialisation"] == "seed" and report["lumen_volume_mm3"] > 0
+    assert report["parameters"]["kernel_radius_mm"] == 10.0
+
+
+def test_segment_options_reach_the_parameters(phantom_dir, tmp_path, capsys):
+    case = tmp_path / "case"
+    code, _, _ = run_and_capture(capsys, ["segment", phantom_dir / "image.nii.gz", "-o", case, "--alpha", "0.25",
+                                          "--hu-window", "-50", "600", "--refine-radius", "0"])
+    assert code == 0
+    params = json.loads((case / "segmentation" / "report.json").read_text())["parameters"]
+    assert params["alpha"] == 0.25 and params["hu_low"] == -50 and params["hu_high"] == 600
+    assert params["refine_radius_mm"] == 0
+
+
+def bad_inputs(tmp_path, phantom_dir):
+    """(name, argv) pairs that must fail cleanly."""
+    image = phantom_dir / "image.nii.gz"
+    flat = tmp_path / "flat.nii.gz"
+    sitk.WriteImage(sitk.GetImageFromArray(np.zeros((20, 20), np.float32)), str(flat))
+    text = tmp_path / "text.nii.gz"
+    text.write_text("hello")
+    vol = read_image(image)
+    constant = write_image(vol.with_array(np.full(vol.array.shape, 40.0, np.float32)), tmp_path / "const.nii.gz")
+    nan = vol.array.copy()
+    nan[5, 5, 5] = np.nan
+    with_nan = write_image(vol.with_array(nan), tmp_path / "nan.nii.gz")
+    return [
+        ("missing file", ["segment", tmp_path / "nope.nii.gz"]),
+        ("2D image", ["segment", flat]),
+        ("not an image", ["segment", text]),
+        ("constant image", ["segment", constant]),
+        ("NaN voxels", ["segment", with_nan]),
+        ("seed outside", ["segment", image, "--seed", "0", "0", "900"]),
+        ("bad parameter", ["segment", image, "--alpha", "2"]),
+    ]
+
+
+def test_bad_input_gives_one_line_exit_2_and_no_files(phantom_dir, tmp_path, capsys):
+    for name, argv in bad_inputs(tmp_path, phantom_dir):
+        case = tmp_path / f"case-{name.replace(' ', '-')}"
+        code, _, err = run_and_capture(capsys, [*argv, "-o", case])
+        assert code == 2, name
+        assert len(err.strip().splitlines()) == 1 and err.startswith("carotid: error:"), (name, err)
+        assert not case.exists(), name
+
+
+@pytest.mark.parametrize("stage", sorted(PLANNED))
+def test_stages_not_built_say_so(stage, capsys):
+    code, _, err = run_and_capture(capsys, [stage, "whatever"])
+    assert code == 2 and "not available yet" in err and len(err.strip().splitlines()) == 1
+
+
+def test_console_script_runs_the_demo(tmp_path):
+    out = tmp_path / "demo"
+    proc = subprocess.run([sys.executable, "-m", "carotid", "demo", "-o", str(out)], capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    assert "Dice against the truth" in proc.stdout and "not available yet" in proc.stdout
+    assert (out / "case" / "segmentation" / "mask.nii.gz").exists()
+    dice = float(proc.stdout.split("Dice against the truth")[1].split(",")[0])
+    assert dice >= 0.95

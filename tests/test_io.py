@@ -1,0 +1,107 @@
+"""Image I/O: formats, geometry, DICOM series and clear errors."""
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from carotid.errors import CarotidError
+from carotid.io import Volume, read_image, write_image, write_json
+
+DIRECTION = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # rotated 90 degrees about z
+
+
+def make_volume():
+    rng = np.random.default_rng(0)
+    array = rng.normal(100, 20, (7, 9, 11)).astype(np.float32)
+    return Volume(array, spacing=(0.45, 0.5, 0.625), origin=(-10.0, 20.0, 5.0), direction=DIRECTION)
+
+
+@pytest.mark.parametrize("suffix", [".nii.gz", ".nrrd", ".mha", ".mhd"])
+def test_roundtrip_keeps_values_and_geometry(tmp_path, suffix):
+    vol = make_volume()
+    path = write_image(vol, tmp_path / f"img{suffix}")
+    back = read_image(path)
+    assert back.array.dtype == np.float32 and back.array.shape == (7, 9, 11)
+    np.testing.assert_allclose(back.array, vol.array, rtol=1e-6)
+    np.testing.assert_allclose(back.spacing, vol.spacing)
+    np.testing.assert_allclose(back.origin, vol.origin)
+    np.testing.assert_allclose(back.direction, DIRECTION, atol=1e-6)
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []  # no temporary left
+
+
+def test_world_index_transform_matches_simpleitk(tmp_path):
+    vol = make_volume()
+    image = sitk.ReadImage(str(write_image(vol, tmp_path / "img.nii.gz")))
+    kji = np.array([[1.0, 2.0, 3.0], [6.0, 8.0, 10.0]])
+    ours = vol.index_to_world(kji)
+    theirs = [image.TransformContinuousIndexToPhysicalPoint(tuple(p[::-1])) for p in kji]
+    np.testing.assert_allclose(ours, theirs, atol=1e-5)
+    np.testing.assert_allclose(vol.world_to_index(ours), kji, atol=1e-9)
+    assert vol.contains(ours).all()
+    assert not vol.contains(np.array([[1e3, 0, 0]])).any()
+
+
+def test_dicom_series_folder(tmp_path):
+    vol = make_volume()
+    array = np.round(vol.array).astype(np.int16)
+    writer = sitk.ImageFileWriter()
+    writer.KeepOriginalImageUIDOn()
+    series = "1.2.826.0.1.3680043.2.1125.1"
+    for k in range(array.shape[0]):
+        sl = sitk.GetImageFromArray(array[k:k + 1])
+        sl.SetSpacing(vol.spacing)
+        origin = vol.index_to_world(np.array([k, 0, 0]))
+        sl.SetOrigin(tuple(origin))
+        sl.SetDirection(DIRECTION.ravel().tolist())
+        for tag, value in [("0020|000e", series), ("0008|0060", "CT"), ("0020|0013", str(k + 1)),
+                           ("0020|0032", "\\".join(f"{c:.4f}" for c in origin)),
+                           ("0020|0037", "\\".join(f"{c:.6f}" for c in DIRECTION.T[:2].ravel())),
+                           ("0008|0018", f"{series}.{k + 1}"), ("0028|0030", "0.5\\0.45")]:
+            sl.SetMetaData(tag, value)
+        writer.SetFileName(str(tmp_path / f"slice{k:03d}.dcm"))
+        writer.Execute(sl)
+    back = read_image(tmp_path)
+    assert back.array.shape == array.shape
+    np.testing.assert_allclose(back.array, array)
+    np.testing.assert_allclose(back.spacing, vol.spacing, atol=1e-4)
+    np.testing.assert_allclose(back.origin, vol.origin, atol=1e-3)
+
+
+def test_bad_inputs_raise_clear_errors(tmp_path):
+    with pytest.raises(CarotidError, match="no such file"):
+        read_image(tmp_path / "missing.nii.gz")
+    text = tmp_path / "notes.nii.gz"
+    text.write_text("not an image")
+    with pytest.raises(CarotidError, match="cannot be read as an image"):
+        read_image(text)
+    flat = tmp_path / "flat.nii.gz"
+    sitk.WriteImage(sitk.GetImageFromArray(np.zeros((5, 6), np.float32)), str(flat))
+    with pytest.raises(CarotidError, match="not a 3D volume"):
+        read_image(flat)
+    rgb = tmp_path / "rgb.mha"
+    sitk.WriteImage(sitk.GetImageFromArray(np.zeros((4, 5, 6, 3), np.uint8), isVector=True), str(rgb))
+    with pytest.raises(CarotidError, match="components"):
+        read_image(rgb)
+    with pytest.raises(CarotidError, match="no DICOM series"):
+        read_image(tmp_path)
+
+
+def test_failed_write_leaves_previous_file(tmp_path):
+    path = write_json({"a": 1}, tmp_path / "x.json")
+    with pytest.raises(TypeError):
+        write_json({"a": object()}, path)
+    assert path.read_text().strip().startswith("{") and '"a": 1' in path.read_text()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.json"]
+
+
+def test_nan_voxels_in_nifti_are_reported(tmp_path):
+    # ITK's NIfTI reader turns NaN into 0, so the file itself is checked.
+    array = np.zeros((4, 5, 6), np.float32)
+    array[1, 2, 3] = np.nan
+    image = sitk.GetImageFromArray(array)
+    for name in ("nan.nii", "nan.nii.gz"):
+        sitk.WriteImage(image, str(tmp_path / name))
+        with pytest.raises(CarotidError, match="1 NaN voxels"):
+            read_image(tmp_path / name)
+    kept = read_image(write_image(Volume(array), tmp_path / "nan.mha"))
+    assert np.isnan(kept.array).sum() == 1

@@ -1,0 +1,82 @@
+"""GPF segmentation accuracy against the phantoms' ground truth, from three kinds of initialisation."""
+
+import numpy as np
+import pytest
+
+from carotid.errors import CarotidError
+from carotid.phantom import LABELS
+from carotid.segment import SegmentParameters, segment
+from carotid.segment.init import seed_levelset
+from carotid.segment.metrics import dice, surface_distances
+from conftest import ACCURACY_CASES, phantom
+
+
+def cross_boundary_region(p):
+    """A 5 mm sphere centred 3.5 mm off the CCA axis, on the side away from the vein: it straddles the wall."""
+    seed = np.array(p.info["seeds_mm"]["CCA"])
+    vein = np.argwhere(p.labels.array == LABELS["vein"])
+    away = seed - p.image.index_to_world(vein.mean(axis=0))
+    away[2] = 0.0
+    centre = seed + 3.5 * away / np.linalg.norm(away)
+    region = seed_levelset(p.image, [centre], 5.0) < 0
+    truth = p.mask.array > 0
+    assert 0.2 < np.count_nonzero(region & truth) / np.count_nonzero(region) < 0.8  # really crosses the wall
+    return region
+
+
+def initialisation(p, how):
+    if how == "seed":
+        return {"seeds_xyz": [p.info["seeds_mm"]["CCA"]]}
+    if how == "cross-boundary":
+        return {"init_mask": cross_boundary_region(p)}
+    return {}
+
+
+@pytest.mark.parametrize("how", ["seed", "cross-boundary", "automatic"])
+@pytest.mark.parametrize("case", ACCURACY_CASES, ids=[f"st{s}-n{n:.0f}-s{r}" for s, n, r in ACCURACY_CASES])
+def test_accuracy_against_truth(case, how):
+    p = phantom(*case)
+    result = segment(p.image, params=SegmentParameters(), **initialisation(p, how))
+    seg = result.mask.array > 0
+    truth = p.mask.array > 0
+    distances = surface_distances(result.levelset.array, p.sdf.array, p.image.spacing_kji)
+    leaked = np.count_nonzero(seg & (p.labels.array >= LABELS["vein"]))
+    assert dice(seg, truth) >= 0.95
+    assert distances["mean"] <= 0.25
+    assert leaked < 0.02 * np.count_nonzero(truth)
+    assert result.report["converged"] and result.report["initialisation"] == how.replace("cross-boundary", "region")
+
+
+def test_outputs_are_a_signed_distance_and_a_report():
+    p = phantom()
+    result = segment(p.image, seeds_xyz=[p.info["seeds_mm"]["CCA"]])
+    phi = result.levelset.array
+    assert phi.dtype == np.float32 and result.mask.array.dtype == np.uint8
+    assert np.array_equal(result.mask.array > 0, phi < 0)
+    grad = np.linalg.norm(np.gradient(phi, *p.image.spacing_kji), axis=0)
+    near = np.abs(phi) < 1.5
+    assert np.median(np.abs(grad[near] - 1)) < 0.05
+    # The deepest point of the CCA lies about one radius inside.
+    assert abs(-phi.min() - p.branches[0].radii[0]) < 0.5
+    report = result.report
+    assert report["lumen_volume_mm3"] == pytest.approx(np.count_nonzero(phi < 0) * np.prod(p.image.spacing_kji))
+    assert set(report["seconds"]) >= {"potential_s", "evolution_s", "total_s"}
+
+
+def test_seed_outside_the_image_is_refused():
+    p = phantom()
+    with pytest.raises(CarotidError, match="outside the image"):
+        segment(p.image, seeds_xyz=[[0.0, 0.0, 500.0]])
+
+
+def test_unusable_images_are_refused():
+    p = phantom()
+    constant = p.image.with_array(np.full(p.image.array.shape, 40.0, np.float32))
+    with pytest.raises(CarotidError, match="constant"):
+        segment(constant, seeds_xyz=[p.info["seeds_mm"]["CCA"]])
+    holes = p.image.array.copy()
+    holes[3, 4, 5] = np.nan
+    with pytest.raises(CarotidError, match="NaN"):
+        segment(p.image.with_array(holes))
+    with pytest.raises(CarotidError, match="alpha"):
+        segment(p.image, params=SegmentParameters(alpha=1.5))
