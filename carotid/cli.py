@@ -135,7 +135,8 @@ def _add_segment_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sigma", type=float, metavar="MM", help="pre-smoothing in mm (default 0.6)")
     p.add_argument("--refine-radius", type=float, metavar="MM",
                    help="kernel of the refining stage, 0 to skip it (default 1.5 mm)")
-    p.add_argument("--denoise", type=int, metavar="N", help="curvature anisotropic diffusion iterations before the potential (default 0: off)")
+    p.add_argument("--denoise", type=int, metavar="N",
+                   help="curvature anisotropic diffusion iterations before the potential (default 0: off)")
     p.add_argument("--seed-radius", type=float, metavar="MM", help="radius of each seed sphere (default 1.5)")
     p.add_argument("--max-iterations", type=int, metavar="N", help="per stage (default 4000)")
 

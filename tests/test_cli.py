@@ -10,7 +10,6 @@ import SimpleITK as sitk
 
 from carotid.cli import PLANNED, main
 from carotid.io import read_image, write_image
-from conftest import phantom
 
 
 @pytest.fixture(scope="module")

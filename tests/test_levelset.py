@@ -69,8 +69,9 @@ def test_signed_distance_is_accurate_deep_inside_and_outside():
     vol, centre, exact = centred_sphere(6.0)
     phi = np.clip(exact, -1.5, 1.5)
     full = signed_distance(phi, SPACING, far=20.0)
-    assert np.abs(full - exact)[exact < 0].max() < 0.05
-    assert np.abs(full - exact)[(exact > 0) & (exact < 5)].max() < 0.35
+    assert np.abs(full - exact)[exact < 0].max() < 0.08
+    assert np.abs(full - exact)[(exact > 0) & (exact < 10)].max() < 0.08
+    assert (full[exact > 21] == 20.0).all()
 
 
 def test_mask_levelset_approximates_the_distance():

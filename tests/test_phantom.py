@@ -41,7 +41,8 @@ def test_stenosis_degree_matches_the_geometry():
     areas = []
     for kk in ks:
         labels, _ = ndimage.label(p.mask.array[kk])
-        j, i = np.round(p.image.world_to_index(ica.points[np.argmin(np.abs(ica.points[:, 2] - kk * 0.625))])[1:]).astype(int)
+        axis_point = ica.points[np.argmin(np.abs(ica.points[:, 2] - kk * 0.625))]
+        j, i = np.round(p.image.world_to_index(axis_point)[1:]).astype(int)
         if labels[j, i]:
             areas.append(np.count_nonzero(labels == labels[j, i]) * 0.45 * 0.45 * cos_tilt)
     expected = np.pi * (sten["min_diameter_mm"] / 2) ** 2

@@ -80,8 +80,8 @@ def test_scalar_and_vector_kernels_agree():
     image += np.random.default_rng(1).normal(0, 20, image.shape).astype(np.float32)
     s = gpf_potential(image, SPACING)
     v = gpf_potential_vector(image, SPACING)
-    z = lambda a: (a - a.mean()) / a.std()
-    assert np.mean(z(s) * z(v)) >= 0.99
+    correlation = np.mean((s - s.mean()) * (v - v.mean())) / (s.std() * v.std())
+    assert correlation >= 0.99
 
 
 @pytest.mark.parametrize("sigma", [0.0, 0.6])

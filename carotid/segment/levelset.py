@@ -37,7 +37,6 @@ from dataclasses import dataclass, field
 
 import numba
 import numpy as np
-from scipy.spatial import cKDTree
 
 
 @numba.njit(parallel=True, cache=True, fastmath=True)
@@ -167,22 +166,6 @@ def zero_crossings(phi: np.ndarray, candidates: np.ndarray, spacing_kji) -> tupl
     return points, normals, np.concatenate(ends)
 
 
-def _distance_to_front(points: np.ndarray, normals: np.ndarray, pos: np.ndarray, spacing_kji: np.ndarray,
-                       upper: float = np.inf) -> np.ndarray:
-    """Unsigned distance (mm) of positions (n, 3) to the front sampled by crossings and normals.
-
-    Within two voxels of the nearest crossing the distance is to its tangent
-    plane, farther away to the crossing itself; ``upper`` where it exceeds ``upper``.
-    """
-    dist, idx = cKDTree(points).query(pos, k=1, distance_upper_bound=upper, workers=-1)
-    out = np.full(len(pos), upper, np.float32)
-    near = np.isfinite(dist)
-    delta = pos[near] - points[idx[near]]
-    plane = np.abs(np.einsum("ij,ij->i", delta, normals[idx[near]]))
-    out[near] = np.where(dist[near] > 2 * spacing_kji.max(), dist[near], np.minimum(plane, dist[near]))
-    return out
-
-
 @numba.njit(cache=True)
 def _propagate(phi, ends, points, normals, hz, hy, hx, width, owner):  # pragma: no cover - compiled
     """Breadth-first propagation (26-connected) of nearest-crossing labels from the crossing edges up to ``width`` mm.
@@ -214,7 +197,6 @@ def _propagate(phi, ends, points, normals, hz, hy, hx, width, owner):  # pragma:
                 if dn < do:
                     owner[v] = c
     visited = queue[:n_visit].copy()
-    n_seed = n_visit
     head = 0
     tail = n_visit
     while head < tail:
@@ -307,18 +289,15 @@ def redistance(phi: np.ndarray, near_front: np.ndarray, spacing_kji, width: floa
 
 
 def signed_distance(phi: np.ndarray, spacing_kji, far: float) -> np.ndarray:
-    """Full signed distance (mm, negative inside, clamped to +-``far``) of a level set.
+    """Signed distance (mm, negative inside) of a level set, clamped to +-``far``.
 
-    Only the sign of ``phi`` and its values within a voxel of the front are
-    used.  Inside voxels and outside voxels within two voxels of the front get
-    their distance to the front as in ``redistance``; farther outside voxels,
-    whose distances matter least, get a Euclidean distance transform of the
-    lumen less half a voxel.
+    Only the sign of ``phi`` and its values within a voxel or so of the front
+    are used; the distances are propagated as in ``redistance``.
 
     Parameters
     ----------
     phi : ndarray, shape (nk, nj, ni), float32
-        Level set, negative inside.
+        Level set, negative inside, distance-like near its zero level.
     spacing_kji : array_like, shape (3,)
     far : float
 
@@ -326,21 +305,11 @@ def signed_distance(phi: np.ndarray, spacing_kji, far: float) -> np.ndarray:
     -------
     ndarray, float32, same shape
     """
-    from scipy import ndimage
-
     spacing_kji = np.asarray(spacing_kji, float)
-    inside = phi < 0
-    h = float(spacing_kji.max())
-    points, normals, _ = zero_crossings(phi, np.flatnonzero(np.abs(phi) <= 1.5 * h), spacing_kji)
-    if len(points) == 0:
-        return np.where(inside, np.float32(-far), np.float32(far))
-    out = ndimage.distance_transform_edt(~inside, sampling=spacing_kji).astype(np.float32)
-    out -= np.float32(0.5 * spacing_kji.min())
-    np.clip(out, 0, far, out=out)
-    targets = np.flatnonzero(inside | (out < 2 * h))
-    d = np.minimum(_distance_to_front(points, normals, _unravel(targets, phi.shape) * spacing_kji,
-                                      spacing_kji, far), far)
-    out.ravel()[targets] = np.where(inside.ravel()[targets], -d, d)
+    out = np.where(phi < 0, np.float32(-far), np.float32(far))
+    work = phi.astype(np.float32, copy=True)
+    band = redistance(work, np.flatnonzero(np.abs(phi) <= 1.5 * spacing_kji.max()), spacing_kji, far)
+    out.ravel()[band] = work.ravel()[band]
     return out
 
 
