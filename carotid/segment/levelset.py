@@ -324,17 +324,23 @@ class EvolutionResult:
     history: list = field(default_factory=list)
 
 
-def stable_time_step(spacing_kji, alpha: float, cfl: float = 0.5) -> float:
-    """Forward-Euler step bounded by the force CFL (|Ghat| <= 1) and by the curvature diffusion limit."""
-    h = float(np.min(spacing_kji))
-    limits = [cfl * h / max(1.0 - alpha, 1e-6)]
+def stable_time_step(spacing_kji, alpha: float, cfl: float = 0.9) -> float:
+    """Forward-Euler step of eq. (1) with ``|Ghat| <= 1`` and ``g <= 1``.
+
+    The upwind force term is monotone for ``dt (1 - alpha) sum_i 1/h_i <= 1``
+    (Crandall-Lions); the curvature term, a diffusion of coefficient at most
+    ``alpha``, is stable for ``dt 2 alpha sum_i 1/h_i^2 <= 1``.  ``cfl`` (< 1)
+    is the safety factor on both.
+    """
+    inv_h = 1.0 / np.asarray(spacing_kji, float)
+    limits = [cfl / (max(1.0 - alpha, 1e-6) * inv_h.sum())]
     if alpha > 0:
-        limits.append(cfl * h * h / (3.0 * alpha))
-    return min(limits)
+        limits.append(cfl / (2.0 * alpha * np.sum(inv_h**2)))
+    return float(min(limits))
 
 
 def evolve(phi: np.ndarray, ghat: np.ndarray, g: np.ndarray, spacing_kji, alpha: float = 0.2,
-           cfl: float = 0.5, band_voxels: float = 1.0, reinit_every: int = 8, max_iterations: int = 4000,
+           cfl: float = 0.9, band_voxels: float = 1.0, reinit_every: int = 8, max_iterations: int = 4000,
            tolerance: float = 2e-3, patience: int = 3, progress=None) -> EvolutionResult:
     """Evolve a signed distance ``phi`` by eq. (1) until the front stops moving.
 
@@ -353,7 +359,7 @@ def evolve(phi: np.ndarray, ghat: np.ndarray, g: np.ndarray, spacing_kji, alpha:
     alpha : float
         Weight of the curvature term (0 <= alpha < 1).
     cfl : float
-        Fraction of a voxel the front may move per step.
+        Safety factor (< 1) on the stable time step, see ``stable_time_step``.
     band_voxels : float
         Half-width of the updated band in units of the largest voxel size.
     reinit_every : int

@@ -57,7 +57,7 @@ class SegmentParameters:
     seed_radius_mm : float
         Radius of the sphere placed at each seed, in mm.
     cfl : float
-        Fraction of the smallest voxel the front may move per step.
+        Safety factor (< 1) on the stable forward-Euler step.
     max_iterations : int
         Safety limit of the evolution.
     tolerance : float
@@ -79,7 +79,7 @@ class SegmentParameters:
     potential_scale: float = 1.0
     edge_beta: float = 0.1
     seed_radius_mm: float = 1.5
-    cfl: float = 0.5
+    cfl: float = 0.9
     max_iterations: int = 4000
     tolerance: float = 2e-3
     far_mm: float = 20.0
@@ -102,7 +102,7 @@ class SegmentParameters:
             (self.potential_scale > 0, "potential_scale must be positive"),
             (self.edge_beta > 0, "edge_beta must be positive"),
             (self.seed_radius_mm > 0, "seed_radius_mm must be positive"),
-            (0 < self.cfl <= 1, "cfl must lie in (0, 1]"),
+            (0 < self.cfl < 1, "cfl must lie in (0, 1)"),
             (self.max_iterations > 0, "max_iterations must be positive"),
             (self.denoise_iterations >= 0, "denoise_iterations must not be negative"),
         ]
