@@ -17,7 +17,7 @@ from scipy import ndimage
 from carotid.io import Volume
 
 
-def window_hu(hu: np.ndarray, low: float = -100.0, high: float = 650.0, fold: float = 2.0) -> np.ndarray:
+def window_hu(hu: np.ndarray, low: float = -100.0, high: float = 550.0, fold: float = 3.0) -> np.ndarray:
     """Window HU to [0, 1], folding values above ``high`` back down.
 
     Parameters
