@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
 
-from carotid.io import Volume
+from carotid.io import Volume, to_sitk
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
 PACKAGES = ("numpy", "scipy", "SimpleITK", "numba", "scikit-image", "carotid")
@@ -225,15 +225,6 @@ class GacStop:
     rms: float = 1e-3
 
 
-def to_sitk(array: np.ndarray, volume: Volume) -> sitk.Image:
-    """float32 SimpleITK image of ``array`` with the geometry of ``volume``."""
-    image = sitk.GetImageFromArray(np.asarray(array, np.float32))
-    image.SetSpacing(volume.spacing)
-    image.SetOrigin(volume.origin)
-    image.SetDirection(volume.direction.ravel().tolist())
-    return image
-
-
 def feature_image(image: sitk.Image, setting: GacSetting) -> sitk.Image:
     """GAC speed image from the Gaussian gradient magnitude (HU/mm) of ``image``, float32 in (0, 1]."""
     grad = sitk.GradientMagnitudeRecursiveGaussian(image, setting.sigma_mm)
@@ -254,7 +245,7 @@ def run_gac(volume: Volume, phi0: np.ndarray, setting: GacSetting, stop: GacStop
         ``converged`` and ``seconds`` (feature image included).
     """
     def evolve() -> tuple[np.ndarray, int, bool]:
-        speed = feature_image(to_sitk(volume.array, volume), setting)
+        speed = feature_image(to_sitk(volume.with_array(volume.array.astype(np.float32))), setting)
         gac = sitk.GeodesicActiveContourLevelSetImageFilter()
         gac.SetPropagationScaling(setting.propagation)
         gac.SetCurvatureScaling(setting.curvature)
@@ -263,7 +254,7 @@ def run_gac(volume: Volume, phi0: np.ndarray, setting: GacSetting, stop: GacStop
         gac.SetNumberOfIterations(stop.chunk)
         phi, iterations, inside = phi0, 0, int(np.count_nonzero(phi0 < 0))
         while iterations < stop.max_iterations:
-            phi = sitk.GetArrayFromImage(gac.Execute(to_sitk(phi, volume), speed))
+            phi = sitk.GetArrayFromImage(gac.Execute(to_sitk(volume.with_array(phi.astype(np.float32))), speed))
             iterations += gac.GetElapsedIterations()
             now = int(np.count_nonzero(phi < 0))
             if gac.GetElapsedIterations() < stop.chunk or abs(now - inside) <= stop.tolerance * max(now, 1):

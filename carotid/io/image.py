@@ -91,7 +91,8 @@ class Volume:
         return np.all((kji >= -0.5) & (kji <= upper), axis=-1)
 
 
-def _to_sitk(volume: Volume) -> sitk.Image:
+def to_sitk(volume: Volume) -> sitk.Image:
+    """SimpleITK image of a volume's array with its spacing, origin and direction."""
     image = sitk.GetImageFromArray(volume.array)
     image.SetSpacing(volume.spacing)
     image.SetOrigin(volume.origin)
@@ -197,10 +198,10 @@ def write_image(volume: Volume, path: str | os.PathLike, compress: bool = True) 
         path.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(prefix=f".{path.name}.", dir=path.parent) as folder:
             tmp = Path(folder)
-            sitk.WriteImage(_to_sitk(volume), str(tmp / path.name), compress)
+            sitk.WriteImage(to_sitk(volume), str(tmp / path.name), compress)
             for part in sorted(tmp.iterdir(), key=lambda p: p.name == path.name):
                 os.replace(part, path.parent / part.name)
         return path
     with atomic_path(path) as tmp:
-        sitk.WriteImage(_to_sitk(volume), str(tmp), compress)
+        sitk.WriteImage(to_sitk(volume), str(tmp), compress)
     return path

@@ -117,7 +117,8 @@ def _central_gradient(phi: np.ndarray, kji: np.ndarray, spacing_kji: np.ndarray)
     return grad
 
 
-def zero_crossings(phi: np.ndarray, candidates: np.ndarray, spacing_kji) -> tuple[np.ndarray, np.ndarray]:
+def zero_crossings(phi: np.ndarray, candidates: np.ndarray,
+                   spacing_kji) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Points where ``phi`` changes sign along grid edges, and the unit normals there.
 
     Parameters
@@ -361,7 +362,8 @@ def evolve(phi: np.ndarray, ghat: np.ndarray, g: np.ndarray, spacing_kji, alpha:
     cfl : float
         Safety factor (< 1) on the stable time step, see ``stable_time_step``.
     band_voxels : float
-        Half-width of the updated band in units of the largest voxel size.
+        Margin of the band beyond the largest displacement of the front in one
+        window, in units of the largest voxel size.
     reinit_every : int
         Steps between re-initialisations (and convergence checks).
     max_iterations : int

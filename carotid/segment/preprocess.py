@@ -14,7 +14,7 @@ import numpy as np
 import SimpleITK as sitk
 from scipy import ndimage
 
-from carotid.io import Volume
+from carotid.io import Volume, to_sitk
 
 
 def window_hu(hu: np.ndarray, low: float = -100.0, high: float = 550.0, fold: float = 3.0) -> np.ndarray:
@@ -55,8 +55,7 @@ def denoise(volume: Volume, iterations: int = 5, conductance: float = 1.0, time_
     time_step : float, optional
         Diffusion step in mm; defaults to ITK's stable bound ``min(spacing) / 2**(3+1)``.
     """
-    image = sitk.GetImageFromArray(np.asarray(volume.array, np.float32))
-    image.SetSpacing(volume.spacing)
+    image = to_sitk(volume.with_array(np.asarray(volume.array, np.float32)))
     step = time_step if time_step is not None else min(volume.spacing) / 16.0
     out = sitk.CurvatureAnisotropicDiffusion(image, timeStep=step, conductanceParameter=conductance,
                                              numberOfIterations=int(iterations))
