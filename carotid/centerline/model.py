@@ -1,0 +1,87 @@
+"""The centerline model shared by the centerline, surface and mesh stages.
+
+Every coordinate is in mm in the image's physical (LPS) frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class Branch:
+    """One vessel axis between two graph nodes.
+
+    Attributes
+    ----------
+    name : str
+        ``"CCA"``, ``"ICA"``, ``"ECA"``, or ``"branch<k>"`` for any further branch.
+    points : ndarray, shape (n, 3)
+        Smoothed axis points in mm. The CCA runs from its inlet end to the bifurcation;
+        every other branch runs from the bifurcation outward to its outlet end.
+    radii : ndarray, shape (n,)
+        Radius of the maximal inscribed sphere at each point, mm.
+    """
+
+    name: str
+    points: np.ndarray
+    radii: np.ndarray
+
+    @property
+    def length_mm(self) -> float:
+        """Arc length of the axis, mm."""
+        return float(np.linalg.norm(np.diff(self.points, axis=0), axis=1).sum())
+
+    def end_tangent(self, end: int) -> np.ndarray:
+        """Unit tangent pointing out of the vessel at ``end`` (0: first point, -1: last point), shape (3,).
+
+        Taken over the last ~2 radii of axis so that voxel-scale wiggles do not tilt it.
+        """
+        pts = self.points if end == -1 else self.points[::-1]
+        span = max(2.0 * float(self.radii[-1 if end == -1 else 0]), 1e-6)
+        arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts[::-1], axis=0), axis=1))])
+        k = int(np.searchsorted(arc, span))
+        k = min(max(k, 1), len(pts) - 1)
+        t = pts[-1] - pts[-1 - k]
+        return t / np.linalg.norm(t)
+
+
+@dataclass
+class Centerlines:
+    """The branch graph of one bifurcation.
+
+    Attributes
+    ----------
+    branches : list of Branch
+        The CCA first, then the ICA and ECA (when found), then any further branches.
+    bifurcation : ndarray, shape (3,)
+        The bifurcation point in mm.
+    info : dict
+        Features (stenosis, lengths, tortuosity) as written to ``geometry.json``.
+    """
+
+    branches: list[Branch]
+    bifurcation: np.ndarray
+    info: dict = field(default_factory=dict)
+
+    def branch(self, name: str) -> Branch:
+        """The branch called ``name``; KeyError if there is none."""
+        for b in self.branches:
+            if b.name == name:
+                return b
+        raise KeyError(name)
+
+    def ends(self) -> list[tuple[str, np.ndarray, np.ndarray, float]]:
+        """The open ends of the vessel tree: the CCA inlet first, then each outlet.
+
+        Returns
+        -------
+        list of (branch name, point (3,) mm, outward unit tangent (3,), radius mm)
+        """
+        out = []
+        for b in self.branches:
+            end = 0 if b.name == "CCA" else -1
+            out.append((b.name, b.points[end].copy(), b.end_tangent(end), float(b.radii[end])))
+        return out
