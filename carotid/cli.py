@@ -22,8 +22,6 @@ PLANNED = {
     "mesh": "the boundary-layer volume mesh (issue #4)",
     "simulate": "the CBS flow solver (issue #5)",
     "verify": "the analytic verification cases (issue #5)",
-    "run": "the scan-to-report chain (issue #6)",
-    "batch": "cohorts on Dask (issue #6)",
     "report": "the HTML report (issue #6)",
 }
 
@@ -119,6 +117,42 @@ def cmd_demo(args) -> int:
     return 0
 
 
+def _config(args):
+    from carotid.config import Config
+
+    return Config.from_toml(args.config) if args.config else Config()
+
+
+def cmd_run(args) -> int:
+    from carotid.pipeline import run
+
+    record = run(args.image, args.output, _config(args))
+    total = sum(stage["seconds"] for stage in record["stages"].values())
+    print(f"case written to {args.output} (case.json: {len(record['stages'])} stages finished, {total:.1f} s of work)")
+    return 0
+
+
+def cmd_batch(args) -> int:
+    from carotid.batch import run_batch
+
+    rows = run_batch(args.manifest, args.output, scheduler=args.scheduler, workers=args.workers,
+                     retries=args.retries, config=args.config)
+    failed = [row for row in rows if row["status"] != "ok"]
+    for row in rows:
+        print(f"{row['case_id']}: {row['status']}" + (f" at {row['failed_stage']}: {row['reason']}"
+                                                       if row["status"] != "ok" else ""))
+    print(f"{len(rows) - len(failed)} of {len(rows)} cases finished; cohort.csv in {args.output}")
+    if failed:
+        print(f"carotid: {len(failed)} of {len(rows)} cases failed (reasons in cohort.csv)", file=sys.stderr)
+        return 3
+    return 0
+
+
+def cmd_config(args) -> int:
+    print(_config(args).to_toml(), end="")
+    return 0
+
+
 def cmd_planned(args) -> int:
     raise CarotidError(f"'{args.command}' is not available yet: {PLANNED[args.command]} is still to be built")
 
@@ -167,6 +201,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", type=Path, required=True, metavar="CASE_DIR")
     _add_segment_options(p)
     p.set_defaults(func=cmd_segment)
+
+    p = sub.add_parser("run", help="every stage from scan to report, skipping stages already done")
+    p.add_argument("image", type=Path, help="CT image: DICOM folder, NIfTI, NRRD or MHA")
+    p.add_argument("-o", "--output", type=Path, required=True, metavar="CASE_DIR")
+    p.add_argument("--config", type=Path, metavar="TOML", help="parameters of every stage (see `carotid config`)")
+    p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("batch", help="run a cohort (manifest CSV: case_id,image[,config]) on Dask; "
+                                     "exit 3 when some cases failed")
+    p.add_argument("manifest", type=Path)
+    p.add_argument("-o", "--output", type=Path, required=True, metavar="OUT_DIR")
+    p.add_argument("--scheduler", metavar="ADDRESS", help="a running Dask scheduler (default: a LocalCluster)")
+    p.add_argument("--workers", type=int, default=2, help="LocalCluster worker processes (default 2)")
+    p.add_argument("--retries", type=int, default=1, help="retries of a stage after an unexpected error (default 1)")
+    p.add_argument("--config", type=Path, metavar="TOML", help="config for cases without their own")
+    p.set_defaults(func=cmd_batch)
+
+    p = sub.add_parser("config", help="print the effective configuration of `carotid run` as TOML")
+    p.add_argument("--show", action="store_true", help="print it (the default action)")
+    p.add_argument("--config", type=Path, metavar="TOML", help="a config file to validate and merge")
+    p.set_defaults(func=cmd_config)
 
     for name, what in PLANNED.items():
         p = sub.add_parser(name, help=f"{what} (not available yet)")

@@ -263,6 +263,36 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
     return Segmentation(volume.with_array(phi), volume.with_array(mask), report)
 
 
+@dataclass
+class SegmentStageParameters(SegmentParameters):
+    """The ``[segment]`` section of a run configuration: ``SegmentParameters`` and the seeds.
+
+    Attributes
+    ----------
+    seeds_mm : list of [x, y, z]
+        Seed points in world mm (LPS); empty for automatic initialisation.
+    """
+
+    seeds_mm: list = field(default_factory=list)
+
+    def validate(self) -> "SegmentStageParameters":
+        """Raise CarotidError for bad values, seeds included."""
+        if any(len(seed) != 3 for seed in self.seeds_mm):
+            raise CarotidError("bad segmentation parameter: each seed must be [x, y, z] in mm")
+        super().validate()
+        return self
+
+
+def run_stage(case_dir: Path, params: dict, inputs: list[Path]) -> None:
+    """The ``segment`` stage of ``carotid run``: read ``inputs[0]``, segment it, write ``CASE_DIR/segmentation``."""
+    from carotid.io import read_image
+
+    params = SegmentStageParameters(**params).validate()
+    fields = {k: v for k, v in asdict(params).items() if k != "seeds_mm"}
+    result = segment(read_image(inputs[0]), seeds_xyz=params.seeds_mm or None, params=SegmentParameters(**fields))
+    write_segmentation(result, case_dir)
+
+
 def write_segmentation(result: Segmentation, case_dir: str | Path) -> Path:
     """Write ``levelset.nii.gz``, ``mask.nii.gz`` and ``report.json`` to ``CASE_DIR/segmentation`` atomically."""
     out = Path(case_dir) / "segmentation"
