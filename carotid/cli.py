@@ -7,6 +7,7 @@ yet say so and exit 2 as well.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 from pathlib import Path
@@ -22,7 +23,6 @@ PLANNED = {
     "mesh": "the boundary-layer volume mesh (issue #4)",
     "simulate": "the CBS flow solver (issue #5)",
     "verify": "the analytic verification cases (issue #5)",
-    "report": "the HTML report (issue #6)",
 }
 
 
@@ -96,24 +96,28 @@ def cmd_segment(args) -> int:
     return 0
 
 
+DEMO_CONFIG: dict = {}  # coarse settings of the later stages for `carotid demo`
+
+
 def cmd_demo(args) -> int:
+    from carotid.config import Config
     from carotid.io import read_image
     from carotid.phantom import make_phantom, write_phantom
-    from carotid.segment import SegmentParameters
+    from carotid.pipeline import run
     from carotid.segment.metrics import dice
 
     out = Path(args.output)
     print(f"1. phantom: a stenosed carotid bifurcation CTA with vein, bone and calcium -> {out / 'phantom'}")
     write_phantom(make_phantom(stenosis=0.7, noise=20.0, seed=0), out / "phantom")
-    print("2. segment: GPF level set, automatic initialisation (no seed)")
-    result, seg_dir = run_segmentation(out / "phantom" / "image.nii.gz", out / "case", params=SegmentParameters())
+    print(f"2. carotid run on it (automatic initialisation, coarse settings) -> {out / 'case'}")
+    run(out / "phantom" / "image.nii.gz", out / "case", Config(DEMO_CONFIG), log=lambda line: print(f"   {line}"))
+    case = out / "case"
     truth = read_image(out / "phantom" / "truth_mask.nii.gz", dtype=np.uint8).array > 0
-    print(f"   -> {seg_dir}: lumen {result.report['lumen_volume_mm3']:.0f} mm^3, "
-          f"Dice against the truth {dice(result.mask.array > 0, truth):.3f}, "
-          f"{result.report['seconds']['total_s']:.1f} s")
-    for number, stage in enumerate(["centerlines", "surface", "mesh", "simulate", "report"], start=3):
-        print(f"{number}. {stage}: not available yet ({PLANNED[stage]})")
-    print(f"results are in {out.resolve()}")
+    mask = read_image(case / "segmentation" / "mask.nii.gz", dtype=np.uint8).array > 0
+    report = json.loads((case / "segmentation" / "report.json").read_text())
+    print(f"   segmentation: lumen {report['lumen_volume_mm3']:.0f} mm^3, "
+          f"Dice against the truth {dice(mask, truth):.3f}, {report['seconds']['total_s']:.1f} s")
+    print(f"results are in {out.resolve()}; open {(case / 'report.html').resolve()}")
     return 0
 
 
@@ -145,6 +149,15 @@ def cmd_batch(args) -> int:
     if failed:
         print(f"carotid: {len(failed)} of {len(rows)} cases failed (reasons in cohort.csv)", file=sys.stderr)
         return 3
+    return 0
+
+
+def cmd_report(args) -> int:
+    from carotid.report import build_report
+
+    if not (Path(args.case_dir) / "segmentation").is_dir():
+        raise CarotidError(f"{args.case_dir}: no segmentation in this case folder (run `carotid segment` first)")
+    print(f"report written to {build_report(args.case_dir)}")
     return 0
 
 
@@ -217,6 +230,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--retries", type=int, default=1, help="retries of a stage after an unexpected error (default 1)")
     p.add_argument("--config", type=Path, metavar="TOML", help="config for cases without their own")
     p.set_defaults(func=cmd_batch)
+
+    p = sub.add_parser("report", help="write CASE_DIR/report.html from the stages that have run")
+    p.add_argument("case_dir", type=Path, metavar="CASE_DIR")
+    p.set_defaults(func=cmd_report)
 
     p = sub.add_parser("config", help="print the effective configuration of `carotid run` as TOML")
     p.add_argument("--show", action="store_true", help="print it (the default action)")

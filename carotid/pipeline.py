@@ -48,12 +48,15 @@ class Stage:
         Files or folders it writes, relative to CASE_DIR.
     runner : str
         ``"module:function"`` of its ``run_stage(case_dir, params, inputs)``; empty while not built yet.
+    optional : tuple of str
+        Files it reads when they exist (hashed into its key only then).
     """
 
     name: str
     inputs: tuple[str, ...]
     outputs: tuple[str, ...]
     runner: str = ""
+    optional: tuple[str, ...] = ()
 
     def load(self) -> Callable:
         """The stage's ``run_stage`` function."""
@@ -67,7 +70,8 @@ STAGES = (
     Stage("surface", ("segmentation", "centerlines.vtp"), ("surface.vtp", "surface_quality.json")),
     Stage("mesh", ("surface.vtp",), ("mesh.vtu", "mesh_quality.json")),
     Stage("simulate", ("mesh.vtu",), ("flow",)),
-    Stage("report", ("segmentation", "flow"), ("report.html",)),
+    Stage("report", ("segmentation",), ("report.html",), "carotid.report.html:run_stage",
+          optional=("centerlines.vtp", "geometry.json", "surface.vtp", "mesh.vtu", "flow")),
 )
 
 
@@ -118,7 +122,7 @@ def _inputs(stage: Stage, case_dir: Path, image: Path) -> list[Path]:
     missing = [str(p) for p in paths if not p.exists()]
     if missing:
         raise CarotidError(f"stage '{stage.name}' lacks its inputs: {', '.join(missing)}")
-    return paths
+    return paths + [case_dir / name for name in stage.optional if (case_dir / name).exists()]
 
 
 def run_stage(stage: Stage, image: Path, case_dir: Path, config: Config) -> str:

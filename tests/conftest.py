@@ -20,3 +20,15 @@ def phantom(stenosis: float = 0.7, noise: float = 20.0, seed: int = 1):
 def small_phantom():
     """A cached default phantom."""
     return phantom()
+
+
+@pytest.fixture(scope="session")
+def demo_run(tmp_path_factory):
+    """``python -m carotid demo`` run once per session: (completed process, output folder)."""
+    import subprocess
+    import sys
+
+    out = tmp_path_factory.mktemp("demo") / "demo"
+    proc = subprocess.run([sys.executable, "-m", "carotid", "demo", "-o", str(out)], capture_output=True, text=True,
+                          timeout=1200)
+    return proc, out

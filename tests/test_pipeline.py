@@ -63,11 +63,12 @@ def test_run_skips_unchanged_stages_and_reruns_changed_ones(small_image, tmp_pat
     case = tmp_path / "case"
     lines = []
     run(small_image, case, log=lines.append)
-    assert lines[0].startswith("segment: done") and all("not available yet" in line for line in lines[1:])
+    assert lines[0].startswith("segment: done") and lines[-1].startswith("report: done")
+    assert all(": done" in line or "not available yet" in line for line in lines)
     first = read_case(case)["stages"]["segment"]
     lines.clear()
     run(small_image, case, log=lines.append)
-    assert lines[0] == "segment: unchanged, skipped"
+    assert lines[0] == "segment: unchanged, skipped" and lines[-1] == "report: unchanged, skipped"
     assert read_case(case)["stages"]["segment"] == first
     lines.clear()
     run(small_image, case, Config({"segment": {"alpha": 0.25}}), log=lines.append)
