@@ -149,7 +149,7 @@ def _jsonable(value):
     if isinstance(value, np.generic):
         return value.item()
     if isinstance(value, float):
-        return round(value, 6)
+        return float(f"{value:.7g}")  # 7 significant digits: small values (viscosities) survive
     return value
 
 
