@@ -18,11 +18,14 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from carotid.config import Config
 from carotid.errors import CarotidError
 from carotid.io import atomic_path
 from carotid.pipeline import STAGES, read_case, run_stage
 
+OSI_THRESHOLD = 0.2  # OSI above which wall is counted as oscillatory (osi_area_fraction)
 COHORT_COLUMNS = ("case_id", "status", "failed_stage", "reason", "image", "lumen_volume_mm3", "nascet", "ecst",
                   "mesh_tetrahedra", "tawss_mean_pa", "osi_area_fraction", "seconds_total", "seconds_by_stage")
 
@@ -84,6 +87,20 @@ def _read_json(path: Path) -> dict:
         return {}
 
 
+def _osi_area_fraction(path: Path, threshold: float = OSI_THRESHOLD):
+    """Fraction of the wall area where OSI exceeds ``threshold`` ("" when the flow stage has not run)."""
+    if not path.exists():
+        return ""
+    import pyvista as pv
+
+    from carotid.flow.indices import area_fraction
+
+    wall = pv.read(path)
+    areas = wall.compute_cell_sizes(length=False, volume=False)["Area"]
+    osi = wall.point_data_to_cell_data()["OSI"] if "OSI" in wall.point_data else wall["OSI"]
+    return float(area_fraction(np.asarray(osi), np.asarray(areas), threshold))
+
+
 def case_summary(case: Case, case_dir: Path, outcome: dict) -> dict:
     """One ``cohort.csv`` row from a case's outcome and the result files it has."""
     record = read_case(case_dir) if (case_dir / "case.json").exists() else {"stages": {}}
@@ -97,9 +114,9 @@ def case_summary(case: Case, case_dir: Path, outcome: dict) -> dict:
         "reason": outcome.get("reason", ""), "image": str(case.image),
         "lumen_volume_mm3": segmentation.get("lumen_volume_mm3", ""),
         "nascet": stenosis.get("nascet", ""), "ecst": stenosis.get("ecst", ""),
-        "mesh_tetrahedra": mesh.get("tetrahedra", ""),
-        "tawss_mean_pa": flow.get("tawss", {}).get("mean_pa", ""),
-        "osi_area_fraction": flow.get("osi", {}).get("area_fraction_above_0.2", ""),
+        "mesh_tetrahedra": mesh.get("elements", {}).get("tetrahedra", ""),
+        "tawss_mean_pa": flow.get("indices", {}).get("TAWSS", {}).get("mean", ""),
+        "osi_area_fraction": _osi_area_fraction(case_dir / "flow" / "indices.vtp"),
         "seconds_total": round(sum(seconds.values()), 3), "seconds_by_stage": json.dumps(seconds),
     }
 

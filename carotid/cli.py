@@ -1,12 +1,12 @@
 """The ``carotid`` command line: one subcommand per pipeline stage.
 
-Bad input ends with one line on stderr and exit status 2; stages not built
-yet say so and exit 2 as well.
+Bad input ends with one line on stderr and exit status 2.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import os
 import sys
@@ -17,13 +17,9 @@ import numpy as np
 from carotid import __version__
 from carotid.errors import CarotidError
 
-PLANNED = {
-    "centerlines": "centerlines and stenosis grading (issue #3)",
-    "surface": "the clipped, remeshed lumen surface (issue #3)",
-    "mesh": "the boundary-layer volume mesh (issue #4)",
-    "simulate": "the CBS flow solver (issue #5)",
-    "verify": "the analytic verification cases (issue #5)",
-}
+# Stage packages that register their own subcommands (``register(subparsers)``), imported lazily.
+STAGE_COMMANDS = ("carotid.centerline.command", "carotid.surface.command", "carotid.mesh.command",
+                  "carotid.flow.command")
 
 
 def _progress_bar(label: str):
@@ -96,7 +92,12 @@ def cmd_segment(args) -> int:
     return 0
 
 
-DEMO_CONFIG: dict = {}  # coarse settings of the later stages for `carotid demo`
+# Coarse settings of `carotid demo`: a 0.8 mm surface, 2 wall layers, a twentieth of a cardiac cycle.
+DEMO_CONFIG = {
+    "surface": {"target_edge_mm": 0.8},
+    "mesh": {"layers": 2, "thickness_ratio": 0.15},
+    "simulate": {"cycles": 0.05, "output_every": 100, "checkpoint_every": 500},
+}
 
 
 def cmd_demo(args) -> int:
@@ -164,10 +165,6 @@ def cmd_report(args) -> int:
 def cmd_config(args) -> int:
     print(_config(args).to_toml(), end="")
     return 0
-
-
-def cmd_planned(args) -> int:
-    raise CarotidError(f"'{args.command}' is not available yet: {PLANNED[args.command]} is still to be built")
 
 
 def _add_segment_options(p: argparse.ArgumentParser) -> None:
@@ -240,10 +237,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", type=Path, metavar="TOML", help="a config file to validate and merge")
     p.set_defaults(func=cmd_config)
 
-    for name, what in PLANNED.items():
-        p = sub.add_parser(name, help=f"{what} (not available yet)")
-        p.add_argument("args", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
-        p.set_defaults(func=cmd_planned)
+    for module in STAGE_COMMANDS:
+        importlib.import_module(module).register(sub)
+
     return parser
 
 

@@ -24,9 +24,22 @@ def _segment_schema() -> type:
     return SegmentStageParameters
 
 
+def _stage_schema(name: str):
+    def schema() -> type:
+        from carotid import stages
+
+        return getattr(stages, name)
+
+    return schema
+
+
 # Config section -> callable returning the stage's parameter dataclass (imported lazily).
 SCHEMAS = {
     "segment": _segment_schema,
+    "centerlines": _stage_schema("CenterlineStageParameters"),
+    "surface": _stage_schema("SurfaceStageParameters"),
+    "mesh": _stage_schema("MeshStageParameters"),
+    "simulate": _stage_schema("FlowStageParameters"),
 }
 
 

@@ -66,10 +66,11 @@ class Stage:
 
 STAGES = (
     Stage("segment", ("input",), ("segmentation",), "carotid.segment.segmentation:run_stage"),
-    Stage("centerlines", ("segmentation",), ("centerlines.vtp", "geometry.json")),
-    Stage("surface", ("segmentation", "centerlines.vtp"), ("surface.vtp", "surface_quality.json")),
-    Stage("mesh", ("surface.vtp",), ("mesh.vtu", "mesh_quality.json")),
-    Stage("simulate", ("mesh.vtu",), ("flow",)),
+    Stage("centerlines", ("segmentation",), ("centerlines.vtp", "geometry.json"), "carotid.stages:run_centerlines"),
+    Stage("surface", ("segmentation", "centerlines.vtp"), ("surface.vtp", "surface_quality.json"),
+          "carotid.stages:run_surface"),
+    Stage("mesh", ("surface.vtp",), ("mesh.vtu", "mesh_quality.json"), "carotid.stages:run_mesh"),
+    Stage("simulate", ("mesh.vtu",), ("flow/summary.json",), "carotid.stages:run_simulate"),
     Stage("report", ("segmentation",), ("report.html",), "carotid.report.html:run_stage",
           optional=("centerlines.vtp", "geometry.json", "surface.vtp", "mesh.vtu", "flow")),
 )

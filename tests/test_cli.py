@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from carotid.cli import PLANNED, main
+from carotid.cli import main
 from carotid.io import read_image, write_image
 
 
@@ -82,12 +82,6 @@ def test_bad_input_gives_one_line_exit_2_and_no_files(phantom_dir, tmp_path, cap
         assert code == 2, name
         assert len(err.strip().splitlines()) == 1 and err.startswith("carotid: error:"), (name, err)
         assert not case.exists(), name
-
-
-@pytest.mark.parametrize("stage", sorted(PLANNED))
-def test_stages_not_built_say_so(stage, capsys):
-    code, _, err = run_and_capture(capsys, [stage, "whatever"])
-    assert code == 2 and "not available yet" in err and len(err.strip().splitlines()) == 1
 
 
 def test_console_script_runs_the_demo(demo_run):

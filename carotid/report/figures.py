@@ -110,9 +110,19 @@ def surface_view(surface, centerlines=None, scalars: str = "CellEntityIds", cmap
                      scalar_bar_args={"title": title or scalars, "color": "black"})
     if centerlines is not None and centerlines.n_points:
         plotter.add_mesh(centerlines.tube(radius=0.25), color="black")
-    plotter.view_isometric()
-    plotter.camera.zoom(1.2)
+    face_on(plotter, np.asarray(surface.points))
     return _screenshot(plotter)
+
+
+def face_on(plotter, points: np.ndarray) -> None:
+    """Look at ``points`` (n, 3) along their least principal axis, the longest one upright.
+
+    A bifurcation lies roughly in a plane; seen along that plane's normal, both daughters show.
+    """
+    centre = points.mean(axis=0)
+    _, _, axes = np.linalg.svd(points - centre, full_matrices=False)
+    extent = np.ptp(points @ axes[0])
+    plotter.camera_position = [tuple(centre + 2.0 * extent * axes[2]), tuple(centre), tuple(axes[0])]
 
 
 def mesh_cut_view(mesh, normal=(1.0, 0.0, 0.0), origin=None, zoom: float = 1.0) -> bytes:
@@ -137,7 +147,7 @@ def mesh_cut_view(mesh, normal=(1.0, 0.0, 0.0), origin=None, zoom: float = 1.0) 
     scalars = "Region" if "Region" in cut.cell_data else None
     plotter.add_mesh(cut, scalars=scalars, show_edges=True, cmap="Pastel1", edge_color="black", line_width=0.3,
                      show_scalar_bar=False)
-    plotter.camera_position = "yz" if abs(normal[0]) > 0.5 else "xz"
+    face_on(plotter, np.asarray(cut.points))
     plotter.camera.zoom(zoom)
     return _screenshot(plotter)
 

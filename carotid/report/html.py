@@ -55,8 +55,15 @@ def flatten(data, prefix: str = "") -> list[tuple[str, object]]:
         else:
             if isinstance(value, float):
                 value = f"{value:.4g}"
+            elif isinstance(value, list) and any(isinstance(v, dict) for v in value):
+                for number, item in enumerate(value):
+                    label = item.get("name") or item.get("branch") or number if isinstance(item, dict) else number
+                    rows += flatten(item, f"{name}.{label}.") if isinstance(item, dict) else [(f"{name}.{label}", item)]
+                continue
             elif isinstance(value, list) and len(value) > 8:
                 value = f"[{len(value)} values]"
+            elif isinstance(value, list):
+                value = ", ".join(f"{v:.4g}" if isinstance(v, float) else str(v) for v in value)
             rows.append((name, value))
     return rows
 

@@ -1,0 +1,122 @@
+"""From a level set to named, smoothed centerlines with inscribed-sphere radii (paper section 3, step 1).
+
+Steps: largest lumen component -> 3D thinning (scikit-image) -> voxel graph ->
+spur pruning, loop cutting and junction merging relative to the local radius
+-> naming (CCA / ICA / ECA / branch<k>, see ``labels``) -> per axis: Gaussian
+smoothing along the arc length, recentring on the maximal inscribed sphere,
+trimming of capped ends and straightening of ends cut by the image border ->
+the bifurcation where the daughter axes leave the trunk -> radius of the
+maximal inscribed sphere at each point (distance to the zero level set of the
+level set, see ``axes``) -> features (``features``).  All geometry is in mm
+in the image's physical frame (spacing, origin and direction honoured), so
+anisotropic voxels need no special care beyond the thinning itself, which is
+topological.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from carotid.centerline.axes import WallDistance, recentre, smooth_axis, straighten_border_end, trim_open_end
+from carotid.centerline.features import geometry_features
+from carotid.centerline.graph import simplify, skeleton_graph
+from carotid.centerline.labels import bifurcation_point, label_tree, splice_at
+from carotid.centerline.model import Branch, Centerlines
+from carotid.centerline.skeleton import largest_component, skeletonize_lumen
+from carotid.errors import CarotidError
+from carotid.io import Volume
+
+
+def compute_centerlines(levelset: Volume, mask: Volume | None = None, *, prune: float = 2.0,
+                        smoothing: float = 1.0, step: float | None = None, merge: float = 0.5,
+                        anatomical_frame: bool = True, centre: bool = True) -> Centerlines:
+    """Centerlines of the vessel tree of a segmented lumen.
+
+    Parameters
+    ----------
+    levelset : Volume
+        Signed distance to the lumen wall in mm, negative inside (the segment stage's ``levelset``).
+    mask : Volume, optional
+        Binary lumen on the same grid (nonzero inside); default ``levelset < 0``.
+    prune : float
+        Terminal branches shorter than ``prune`` times the radius of the vessel they leave are spurs and
+        are removed.
+    smoothing : float
+        Standard deviation (mm) of the Gaussian applied to each axis along its arc length; 0: none.
+    step : float, optional
+        Spacing of the output axis points, mm; default half the smallest voxel size.
+    merge : float
+        Junctions closer than ``merge`` times the local radius are merged into one node.
+    anatomical_frame : bool
+        Whether world z is superior (a CTA in LPS); see ``carotid.centerline.labels``.  Pass False for a
+        surface in an arbitrary frame (an external STL).
+    centre : bool
+        Recentre the smoothed axes on the maximal inscribed spheres (False: the thinned axis as is).
+
+    Returns
+    -------
+    Centerlines
+        Branches named CCA, ICA, ECA, branch<k>; ``bifurcation`` is where the ICA and ECA axes leave the
+        CCA axis (the skeleton's junction node if that cannot be fitted; NaN if the tree has no
+        bifurcation); ``info`` holds the features of ``features.geometry_features``, the labelling cues
+        and the lumen component report.
+
+    Raises
+    ------
+    CarotidError
+        On an empty or fragmented lumen, a lumen with no axis, or a mask on another grid.
+    """
+    phi = np.asarray(levelset.array)
+    if not np.isfinite(phi).all():
+        raise CarotidError("the level set holds NaN or infinite values")
+    if mask is not None and mask.array.shape != phi.shape:
+        raise CarotidError(f"mask shape {mask.array.shape} differs from the level set's {phi.shape}")
+    inside = (mask.array > 0) if mask is not None else (phi < 0)
+    spacing_kji = levelset.spacing_kji
+    lumen, report = largest_component(inside, float(np.prod(spacing_kji)))
+    r_max = float(max(-phi[lumen].min(), spacing_kji.max()))
+    skel = skeletonize_lumen(lumen, spacing_kji, extend_mm=2.0 * r_max)
+
+    try:
+        radius_at = WallDistance(levelset, lumen)
+    except ValueError:
+        raise CarotidError("the level set has no zero level (wall) near the lumen; "
+                           "is it a signed distance, negative inside?") from None
+
+    graph = simplify(skeleton_graph(skel, levelset.index_to_world), radius_at, prune=prune, merge=merge)
+    if sum(e.length for e in graph.edges) < 2.0 * r_max:
+        raise CarotidError(f"the lumen has no vessel axis (its skeleton is shorter than its diameter, "
+                           f"{2 * r_max:.1f} mm): is the segmentation a blob rather than a vessel?")
+    if not np.any(graph.degree() == 1):
+        raise CarotidError("the vessel axis has no open end (it is a closed loop); check the segmentation")
+    labelled = label_tree(graph, radius_at, anatomical_frame=anatomical_frame)
+    step = float(step if step is not None else 0.5 * spacing_kji.min())
+    axes = {}
+    open_ends = labelled.open_ends()
+    for name, raw in labelled.paths.items():
+        pts = smooth_axis(raw, smoothing, step)
+        if centre:
+            pts = smooth_axis(recentre(radius_at, pts, max_shift=float(spacing_kji.max())), 0.5 * smoothing, step)
+        for at_start in open_ends.get(name, ()):
+            pts = trim_open_end(pts, radius_at(pts), at_start)
+            r_end = float(np.median(radius_at(pts[:len(pts) // 2] if at_start else pts[len(pts) // 2:])))
+            pts = straighten_border_end(levelset, pts, r_end, at_start)
+        axes[name] = smooth_axis(pts, 0.0, step)
+    bif, bif_method = np.full(3, np.nan), "none"
+    if labelled.bifurcation_node is not None:
+        bif, bif_method = graph.nodes[labelled.bifurcation_node], "junction"
+        r_junction = float(radius_at(bif)[0])
+        point = bifurcation_point(axes["CCA"], axes["ICA"], axes["ECA"], r_junction)
+        if point is not None:
+            bif, bif_method = point, "daughter_lines"
+            axes["CCA"], (axes["ICA"], axes["ECA"]) = splice_at(point, axes["CCA"], [axes["ICA"], axes["ECA"]],
+                                                                 skip=0.5 * r_junction)
+            for name in ("CCA", "ICA", "ECA"):
+                axes[name] = smooth_axis(axes[name], 0.0, step)
+    branches = [Branch(name, pts, radius_at(pts)) for name, pts in axes.items()]
+    labelled.info["bifurcation_method"] = bif_method
+    info = {"lumen": report, "labelling": labelled.info,
+            "parameters": {"prune": prune, "smoothing_mm": smoothing, "step_mm": step, "merge": merge}}
+    cl = Centerlines(branches, np.asarray(bif, float), info)
+    cl.info.update(geometry_features(cl))
+    return cl

@@ -1,0 +1,432 @@
+"""Semi-implicit characteristic-based split (CBS) for incompressible Newtonian flow on P1 tetrahedra.
+
+One time step (Zienkiewicz & Codina 1995; Nithiarasu et al. 2006; validation.md, theta1 = theta2 = 1):
+
+1. intermediate momentum, explicit, no pressure, lumped mass::
+
+       M dU* / dt = -C(u) u - nu K u - (dt/2) S(u) u
+
+   with the characteristic-Galerkin term ``S`` (:func:`carotid.flow.assembly.momentum_residual`);
+2. pressure Poisson (kinematic pressure p / rho)::
+
+       K_tau p = int grad N . (u^n + dU*) - int_Gamma N g.n + sum_e (tau_e - dt) int grad N . P(grad p^n)
+
+   with ``K_tau = sum_e tau_e K_e`` assembled once, Dirichlet on the outlets, natural on walls and inlet
+   (the inlet flux ``int_Gamma N g.n`` is the consistent boundary integral, like the weak divergence it
+   balances); solved by conjugate gradients preconditioned with pyamg smoothed aggregation (hierarchy
+   built once, warm start from the previous step) or, below ``PressureSolver.LU_LIMIT`` unknowns, a
+   sparse LU;
+3. correction ``u^{n+1} = u* - dt M^-1 int N grad p``, then the velocity Dirichlet conditions.
+
+Equal-order P1 velocity and pressure are stable because the split leaves a pressure Laplacian in the
+continuity equation: with ``tau_e = dt`` this is the textbook scheme (``dt K p = ...``) and the residual
+``dt (K - D M^-1 G) p`` stabilises.  That O(dt) stabilisation vanishes when the global step is set by a
+thin wall layer (dt ~ 3e-5 s against ~1e-3 s for the core elements) and the pressure then wiggles, so the
+stabilisation uses each element's own local time step ``tau_e = 1 / (U/h_e + 2 nu/h_e^2)`` (the CBS local
+time step, U the inlet velocity scale), and the extra ``(tau_e - dt)`` part is made consistent with the
+lumped projection ``P(grad p^n)`` of the previous pressure gradient: the discrete continuity equation
+then reads ``int grad N . u^{n+1} - int_Gamma N g.n = sum_e tau_e int grad N . (grad p^{n+1} - P grad p^n)``
+(up to the dt-small part at velocity-Dirichlet nodes, where the correction is not applied), which
+vanishes for a linear pressure: an orthogonal-projection stabilisation in the sense of Codina (2000),
+and the discrete fully developed (Poiseuille) profile of the section is an exact steady state.
+
+Boundary conditions: rigid no-slip walls (label 1); inlet (label 2) velocity = the inlet profile's axial
+speed times the inward normal; outlets (labels 3, ...) are traction-free (Laplacian-form viscous term)
+with a uniform pressure per outlet.
+
+Mass balance and flow split.  The volume flow through an outlet is measured by the consistent flux: the
+residual of the discrete continuity equation at the outlet nodes (pressure-Dirichlet rows, whose equations
+are not solved), shared between outlets by boundary area where two meet (Hughes et al. 2000, "The
+continuous Galerkin method is locally conservative").  The residuals of all rows sum to the inflow, so the
+total consistent outflow equals the inflow up to the pressure solver's tolerance.  The outlet pressures
+impose the split in that same measure every step: ``p = p0 + sum_j c_j phi_j``, where ``p0`` has zero
+outlet pressure and ``phi_j`` is the discrete ``K_tau``-harmonic lifting equal to 1 on outlet j and 0 on the
+others (computed once); the consistent outlet fluxes are affine in ``c`` (``-K_tau phi_j`` at the outlet
+rows), so a small (outlets x outlets) system gives the ``c`` for which every outlet carries its share and
+the area-weighted mean outlet pressure is zero.  ``int u.n`` of the P1 velocity over each outlet is reported
+too; it differs from the consistent flux by the stabilisation flux through the outlet's element layer.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import scipy.sparse.linalg as spla
+
+from carotid.errors import CarotidError
+from carotid.flow import assembly as asm
+from carotid.flow.mesh import INLET, WALL, FlowMesh
+
+
+def murray_split(mesh: FlowMesh) -> np.ndarray:
+    """Murray's law flow fractions of the outlets, ``Q_i ~ A_i^{3/2}`` (i.e. ~ D^3), shape (outlets,)."""
+    a = np.array([mesh.face_area(lab) for lab in mesh.outlet_labels]) ** 1.5
+    return a / a.sum()
+
+
+def check_split(split, n_outlets: int) -> np.ndarray:
+    """Validate user flow fractions: one per outlet, positive, summing to 1 (to 1e-6)."""
+    s = np.asarray(split, dtype=float).ravel()
+    if len(s) != n_outlets:
+        raise CarotidError(f"the flow split has {len(s)} ratios but the mesh has {n_outlets} outlets")
+    if np.any(~np.isfinite(s)) or np.any(s <= 0):
+        raise CarotidError("flow split ratios must be positive numbers")
+    if abs(s.sum() - 1.0) > 1e-6:
+        raise CarotidError(f"flow split ratios must sum to 1 (they sum to {s.sum():.6g})")
+    return s
+
+
+class PressureSolver:
+    """Repeated solves with one SPD matrix: pyamg SA-preconditioned CG, sparse LU, or Jacobi-CG.
+
+    Parameters
+    ----------
+    matrix : scipy.sparse matrix, shape (k, k)
+        Symmetric positive definite.
+    method : {"auto", "amg", "lu", "jacobi"}
+        "auto": sparse LU below ``LU_LIMIT`` unknowns (faster there: pyamg's per-cycle Python overhead
+        dominates small problems), pyamg above (LU fill-in explodes in 3D; dependencies.md).
+    rtol : float
+        Relative residual ``|b - A x| / |b|`` at which the iterative methods stop.
+    """
+
+    LU_LIMIT = 15000
+
+    def __init__(self, matrix, method: str = "auto", rtol: float = 1e-8):
+        self.matrix = matrix.tocsr()
+        if method == "auto":
+            method = "lu" if matrix.shape[0] < self.LU_LIMIT else "amg"
+        self.method, self.rtol = method, rtol
+        self.iterations = 0
+        if method == "amg":
+            import pyamg
+
+            self._ml = pyamg.smoothed_aggregation_solver(self.matrix, symmetry="symmetric")
+        elif method == "lu":
+            self._lu = spla.splu(self.matrix.tocsc())
+        elif method == "jacobi":
+            self._inv_diag = spla.LinearOperator(self.matrix.shape, matvec=lambda x: x / self.matrix.diagonal(),
+                                                 dtype=float)
+        else:
+            raise CarotidError(f"unknown pressure solver {method!r} (auto, amg, lu or jacobi)")
+
+    def solve(self, b: np.ndarray, x0: np.ndarray | None = None) -> np.ndarray:
+        """Solve ``A x = b`` from the initial guess ``x0``; sets ``.iterations``."""
+        if self.method == "lu":
+            self.iterations = 1
+            return self._lu.solve(b)
+        if not np.any(b):
+            self.iterations = 0
+            return np.zeros_like(b)
+        count = [0]
+
+        def callback(*_):
+            count[0] += 1
+
+        if self.method == "amg":
+            residuals: list = []
+            x = self._ml.solve(b, x0=x0, tol=self.rtol, accel="cg", maxiter=500, residuals=residuals)
+            self.iterations = max(len(residuals) - 1, 0)
+            return x
+        x, _ = spla.cg(self.matrix, b, x0=x0, rtol=self.rtol, maxiter=20000, M=self._inv_diag, callback=callback)
+        self.iterations = count[0]
+        return x
+
+
+@dataclass
+class StepInfo:
+    """Diagnostics of one time step.
+
+    Attributes
+    ----------
+    dt : float
+        s.
+    cfl : float
+    inflow : float
+        Volume flow in through the inlet, m^3/s.
+    outflow : ndarray, shape (outlets,)
+        Consistent volume flow out of each outlet (the discrete continuity residual at its nodes), m^3/s.
+    outflow_p1 : ndarray, shape (outlets,)
+        ``int u.n dS`` of the P1 velocity over each outlet, m^3/s (differs from ``outflow`` by the pressure
+        stabilisation flux through the outlet's element layer).
+    pressure_iterations : int
+    """
+
+    dt: float
+    cfl: float
+    inflow: float
+    outflow: np.ndarray
+    outflow_p1: np.ndarray
+    pressure_iterations: int
+
+    @property
+    def imbalance(self) -> float:
+        """(inflow - total consistent outflow) / inflow."""
+        return float((self.inflow - self.outflow.sum()) / self.inflow) if self.inflow else 0.0
+
+    @property
+    def imbalance_p1(self) -> float:
+        """(inflow - total P1 outflow) / inflow."""
+        return float((self.inflow - self.outflow_p1.sum()) / self.inflow) if self.inflow else 0.0
+
+
+class CBSSolver:
+    """CBS time stepping on a :class:`FlowMesh`.
+
+    Parameters
+    ----------
+    mesh : FlowMesh
+    inlet_speed : callable
+        ``inlet_speed(t) -> (k,)`` axial speed (m/s, positive inward) at ``mesh.face_patch(2)[0]`` nodes.
+    nu : float
+        Kinematic viscosity, m^2/s.
+    split : array_like, optional
+        Outflow fraction of each outlet (ascending label); default Murray's law.
+    dt : float, optional
+        Fixed time step, s; default: adaptive, ``safety * min_e 1 / (|u_e|/h_e + 2 nu_e/h_e^2)``.
+    safety : float
+        Safety factor of the adaptive step.
+    velocity_scale : float, optional
+        Velocity U of the stabilisation time scale, m/s; default: twice the largest inlet mean speed
+        among ``inlet_speed(0)``.
+    turbulence : object, optional
+        A :class:`carotid.flow.turbulence.SpalartAllmaras`; None for laminar flow.
+    pressure : {"auto", "amg", "lu", "jacobi"}
+        See :class:`PressureSolver`.
+    pressure_rtol : float
+    """
+
+    def __init__(self, mesh: FlowMesh, inlet_speed: Callable[[float], np.ndarray], nu: float, split=None,
+                 dt: float | None = None, safety: float = 0.5, velocity_scale: float | None = None,
+                 turbulence=None, pressure: str = "auto", pressure_rtol: float = 1e-8):
+        if dt is not None and not dt > 0:
+            raise CarotidError(f"the time step must be positive (got {dt})")
+        self.mesh, self.inlet_speed, self.nu = mesh, inlet_speed, float(nu)
+        self.fixed_dt, self.safety, self.turbulence = dt, float(safety), turbulence
+        n = mesh.n_points
+        self.volumes, self.grads = asm.element_geometry(mesh.points, mesh.tets)
+        self.h = asm.element_size(self.grads)
+        self.mass = asm.lumped_mass(self.volumes, mesh.tets, n)
+        self.outlets = mesh.outlet_labels
+        self.split = murray_split(mesh) if split is None else check_split(split, len(self.outlets))
+        self._setup_boundaries()
+        if velocity_scale is None:
+            velocity_scale = 2.0 * float(np.abs(inlet_speed(0.0)).mean())
+        self.tau = 1.0 / (velocity_scale / self.h + 2.0 * self.nu / self.h**2)
+        k = asm.stiffness_matrix(self.volumes * self.tau, self.grads, mesh.tets, n)
+        self._k_fd = k[self.free][:, self.p_dirichlet]
+        self._k_out = k[self.p_dirichlet]  # outlet rows of the pressure matrix: the consistent outlet fluxes
+        self.pressure = PressureSolver(k[self.free][:, self.free], pressure, pressure_rtol)
+        self._setup_outlet_response()
+        self._resid = np.zeros((n, 3))
+        self._div = np.zeros(n)
+        self._proj = np.zeros(n)
+        self._gp = np.zeros((n, 3))
+        self._speed = np.zeros(len(mesh.tets))
+        self.reset()
+
+    # ------------------------------------------------------------------ set-up
+    def _setup_boundaries(self) -> None:
+        mesh, n = self.mesh, self.mesh.n_points
+        wall = mesh.face_nodes(WALL)
+        self.inlet_nodes = mesh.face_patch(INLET)[0]
+        self.inlet_dir = -mesh.face_normal(INLET)  # inward unit normal
+        nodes, weights = mesh.flux_weights(INLET)
+        self._in_nodes, self._in_w = nodes, weights
+        self._in_tri = np.searchsorted(nodes, mesh.faces[mesh.labels == INLET])
+        self._in_an = mesh.face_area_normals(INLET)
+        self.u_dirichlet = np.zeros(n, bool)
+        self.u_dirichlet[wall] = True
+        self.u_dirichlet[self.inlet_nodes] = True
+        self._inlet_free = ~np.isin(self.inlet_nodes, wall)  # inlet nodes not on the rim
+        owner = np.full(n, -1)
+        for j, lab in reversed(list(enumerate(self.outlets))):
+            owner[mesh.face_nodes(lab)] = j
+        self.p_dirichlet = np.flatnonzero(owner >= 0)
+        self.p_owner = owner[self.p_dirichlet]
+        self.free = np.flatnonzero(owner < 0)
+        self.out_flux = [mesh.flux_weights(lab) for lab in self.outlets]
+        self.out_share = self._outlet_shares()
+        self.outlet_areas = np.array([mesh.face_area(lab) for lab in self.outlets])
+
+    def _outlet_shares(self) -> np.ndarray:
+        """Share of each outlet node's continuity residual given to each outlet, shape (outlets, k).
+
+        ``share[j, i] = int_{outlet j} N_i dS / int_{all outlets} N_i dS`` for the pressure-Dirichlet nodes
+        ``p_dirichlet``: 1 for a node on one outlet only, split by area on a line where two outlets meet.
+        """
+        mesh, n = self.mesh, self.mesh.n_points
+        area = np.zeros((len(self.outlets), n))
+        for j, lab in enumerate(self.outlets):
+            f = mesh.faces[mesh.labels == lab]
+            a = np.linalg.norm(mesh.face_area_normals(lab), axis=1)
+            area[j] = np.bincount(f.ravel(), np.repeat(a / 3.0, 3), minlength=n)
+        area = area[:, self.p_dirichlet]
+        return area / area.sum(axis=0)[None]
+
+    def _setup_outlet_response(self) -> None:
+        """Liftings ``phi_j`` and the per-unit-pressure velocity corrections ``s_j`` (before the dt factor)."""
+        n, m = self.mesh.n_points, len(self.outlets)
+        self.phi = np.zeros((m, n))
+        self.s = np.zeros((m, n, 3))
+        for j in range(m):
+            pd = (self.p_owner == j).astype(float)
+            self.phi[j, self.p_dirichlet] = pd
+            if m > 1:
+                self.phi[j, self.free] = self.pressure.solve(-(self._k_fd @ pd))
+            grad = np.zeros((n, 3))
+            asm.lumped_gradient(self.mesh.tets, self.grads, self.volumes, self.phi[j], grad)
+            self.s[j] = -grad / self.mass[:, None]
+            self.s[j, self.u_dirichlet] = 0.0
+        # consistent outlet flux per unit outlet pressure: -sum_i share[i] (K_tau phi_j)_i, [outlet i, lifting j]
+        self.flux_response = -self.out_share @ np.column_stack([self._k_out @ self.phi[j] for j in range(m)])
+
+    def _flux(self, u: np.ndarray, j: int) -> float:
+        nodes, w = self.out_flux[j]
+        return float(np.einsum("ij,ij->", w, u[nodes]))
+
+    def _inlet_nodal_flux(self, u: np.ndarray) -> np.ndarray:
+        """Consistent boundary flux ``int_inlet N_i u.n dS`` at the inlet nodes ``_in_nodes``, m^3/s, shape (k,).
+
+        It must be the consistent (not lumped) boundary integral: the weak divergence ``int grad N_i . u``
+        it balances in the continuity equation is consistent, and a lumped flux leaves a node-by-node source
+        at the inlet that the pressure equation turns into a spurious inlet pressure layer.
+        """
+        tri, an = self._in_tri, self._in_an
+        un = np.einsum("tkc,tc->tk", u[self._in_nodes][tri], an)  # u_j . (area n) per triangle corner
+        return np.bincount(tri.ravel(), ((un.sum(axis=1)[:, None] + un) / 12.0).ravel(),
+                           minlength=len(self._in_nodes))
+
+    def inflow(self, u: np.ndarray) -> float:
+        """Volume flow into the domain through the inlet, m^3/s."""
+        return -float(np.einsum("ij,ij->", self._in_w, u[self._in_nodes]))
+
+    def outflows(self, u: np.ndarray) -> np.ndarray:
+        """Volume flow out of each outlet, m^3/s, shape (outlets,)."""
+        return np.array([self._flux(u, j) for j in range(len(self.outlets))])
+
+    # ------------------------------------------------------------------ state
+    def reset(self, u0: np.ndarray | None = None, t0: float = 0.0) -> None:
+        """Start from rest (or from the velocity ``u0`` (n, 3)) at time ``t0``."""
+        n = self.mesh.n_points
+        self.t, self.step_count = float(t0), 0
+        self.u = np.zeros((n, 3)) if u0 is None else np.array(u0, dtype=float)
+        self.p = np.zeros(n)
+        self._p0_free = np.zeros(len(self.free))
+        self.nut_hat = None if self.turbulence is None else self.turbulence.initial(n)
+        self._apply_velocity_bc(self.u, self.t)
+        if self.turbulence is not None:
+            self.turbulence.apply_bc(self.nut_hat)
+
+    def state(self) -> dict:
+        """Every array and scalar needed to continue the run bit for bit (for checkpoints)."""
+        st = {"u": self.u, "p": self.p, "p0_free": self._p0_free, "t": self.t, "step": self.step_count}
+        if self.nut_hat is not None:
+            st["nut_hat"] = self.nut_hat
+        return st
+
+    def load_state(self, st: dict) -> None:
+        """Restore a :meth:`state` (shapes are checked)."""
+        if np.shape(st["u"]) != self.u.shape or np.shape(st["p0_free"]) != self._p0_free.shape:
+            raise CarotidError("the checkpoint does not belong to this mesh: delete it or run without --resume")
+        self.u = np.array(st["u"], dtype=float)
+        self.p = np.array(st["p"], dtype=float)
+        self._p0_free = np.array(st["p0_free"], dtype=float)
+        self.t, self.step_count = float(st["t"]), int(st["step"])
+        if self.turbulence is not None:
+            self.nut_hat = np.array(st["nut_hat"], dtype=float)
+
+    # ------------------------------------------------------------------ stepping
+    def _apply_velocity_bc(self, u: np.ndarray, t: float) -> None:
+        u[self.u_dirichlet] = 0.0
+        speed = np.asarray(self.inlet_speed(t), dtype=float)
+        u[self.inlet_nodes[self._inlet_free]] = speed[self._inlet_free, None] * self.inlet_dir
+
+    def element_viscosity(self) -> np.ndarray:
+        """Effective kinematic viscosity per element, m^2/s, shape (m,)."""
+        if self.turbulence is None:
+            return np.full(len(self.mesh.tets), self.nu)
+        return self.nu + self.turbulence.nu_t(self.nut_hat)[self.mesh.tets].mean(axis=1)
+
+    def time_step(self, nu_e: np.ndarray) -> tuple[float, float]:
+        """``(dt, CFL)`` for the current velocity: adaptive or fixed, and ``max |u_e| dt / h_e``."""
+        asm.element_speed(self.mesh.tets, self.u, self._speed)
+        nu_dt = nu_e if self.turbulence is None else np.maximum(nu_e, self.turbulence.diffusivity_bound(
+            self.nut_hat, self.mesh.tets))
+        if self.fixed_dt is not None:
+            dt = self.fixed_dt
+        else:
+            dt = self.safety / float(np.max(self._speed / self.h + 2.0 * nu_dt / self.h**2))
+        return dt, float(np.max(self._speed / self.h) * dt)
+
+    def step(self, max_dt: float | None = None) -> StepInfo:
+        """Advance one time step (at most ``max_dt`` s long); returns its diagnostics."""
+        mesh, tets = self.mesh, self.mesh.tets
+        nu_e = self.element_viscosity()
+        dt, cfl = self.time_step(nu_e)
+        if max_dt is not None and max_dt < dt:
+            dt, cfl = max_dt, cfl * max_dt / dt
+        t1 = self.t + dt
+        # 1. intermediate momentum
+        asm.momentum_residual(tets, self.grads, self.volumes, self.u, nu_e, 0.5 * dt, self._resid)
+        ustar = self.u + (dt / self.mass)[:, None] * self._resid
+        self._apply_velocity_bc(ustar, t1)
+        # 2. pressure with zero outlet pressure
+        asm.weak_divergence(tets, self.grads, self.volumes, ustar, self._div)
+        self._div[self._in_nodes] -= self._inlet_nodal_flux(ustar)
+        asm.lumped_gradient(tets, self.grads, self.volumes, self.p, self._gp)
+        asm.weak_divergence(tets, self.grads, self.volumes * (self.tau - dt), self._gp / self.mass[:, None],
+                            self._proj)
+        rhs = self._div + self._proj
+        self._p0_free = self.pressure.solve(rhs[self.free], x0=self._p0_free)
+        p = np.zeros(mesh.n_points)
+        p[self.free] = self._p0_free
+        # consistent outlet fluxes: the residual of the discrete continuity equation at the outlet nodes
+        q0 = self.out_share @ (rhs[self.p_dirichlet] - self._k_out @ p)
+        # 3. correction, then outlet pressures that impose the split
+        asm.lumped_gradient(tets, self.grads, self.volumes, p, self._gp)
+        u = ustar - (dt / self.mass)[:, None] * self._gp
+        u[self.u_dirichlet] = ustar[self.u_dirichlet]
+        c = self._outlet_pressures(q0)
+        u += dt * np.tensordot(c, self.s, axes=1)
+        p += c @ self.phi
+        if self.turbulence is not None:
+            self.nut_hat = self.turbulence.step(self.nut_hat, u, dt, nu_e)
+        self.u, self.p, self.t = u, p, t1
+        self.step_count += 1
+        return StepInfo(dt, cfl, self.inflow(u), q0 + self.flux_response @ c, self.outflows(u),
+                        self.pressure.iterations)
+
+    def _outlet_pressures(self, q0: np.ndarray) -> np.ndarray:
+        """Outlet pressures c (outlets,) for which outlets 0..N-2 carry ``split`` of the total consistent outflow
+        ``q0 + flux_response @ c`` and ``sum(A c) = 0``."""
+        m = len(self.outlets)
+        r = self.flux_response
+        a = np.zeros((m, m))
+        b = np.zeros(m)
+        a[: m - 1] = r[: m - 1] - self.split[: m - 1, None] * r.sum(axis=0)[None]
+        b[: m - 1] = self.split[: m - 1] * q0.sum() - q0[: m - 1]
+        a[m - 1] = self.outlet_areas
+        return np.linalg.solve(a, b)
+
+    # ------------------------------------------------------------------ diagnostics
+    def check_finite(self, max_speed: float) -> tuple[bool, int]:
+        """``(ok, node)``: whether the velocity is finite and below ``max_speed`` m/s, and the worst node."""
+        speed = np.einsum("ij,ij->i", self.u, self.u)
+        bad = ~np.isfinite(speed)
+        if bad.any():
+            return False, int(np.flatnonzero(bad)[0])
+        node = int(np.argmax(speed))
+        return bool(speed[node] <= max_speed**2), node
+
+    def pressure_pa(self, rho: float) -> np.ndarray:
+        """Pressure in Pa (the solver works with p / rho), shape (n,)."""
+        return rho * self.p
+
+    def velocity_gradients(self, u: np.ndarray | None = None) -> np.ndarray:
+        """Element velocity gradients ``G[e, r, c] = d u_r / d x_c``, 1/s, shape (m, 3, 3)."""
+        out = np.empty((len(self.mesh.tets), 3, 3))
+        asm.velocity_gradients(self.mesh.tets, self.grads, self.u if u is None else u, out)
+        return out

@@ -1,0 +1,91 @@
+"""``carotid simulate`` and ``carotid verify``: argparse registration and handlers."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from carotid.errors import CarotidError
+
+
+def _split(values: list[str] | None) -> tuple | None:
+    """``["0.65:0.35"]`` or ``["0.65", "0.35"]`` -> (0.65, 0.35)."""
+    if not values:
+        return None
+    try:
+        return tuple(float(v) for item in values for v in item.split(":") if v)
+    except ValueError as exc:
+        raise CarotidError(f"--split takes numbers like 0.65:0.35 ({exc})") from exc
+
+
+def cmd_simulate(args) -> int:
+    from tqdm import tqdm
+
+    from carotid.flow.mesh import FlowMesh
+    from carotid.flow.simulate import FlowParameters, simulate
+
+    case = Path(args.case_dir)
+    mesh = FlowMesh.from_vtu(case / "mesh.vtu")
+    waveform = None
+    if args.waveform is not None:
+        from carotid.flow.waveform import read_waveform_csv
+
+        waveform = read_waveform_csv(args.waveform)
+    params = FlowParameters(cycles=args.cycles, dt=args.dt, waveform=waveform, split=_split(args.split),
+                            turbulence=args.turbulence, output_every=args.output_every,
+                            checkpoint_every=args.checkpoint_every)
+    bar = tqdm(total=1.0, unit="cycle", file=sys.stderr, disable=None, dynamic_ncols=True,
+               bar_format="{l_bar}{bar}| {postfix}")
+
+    def progress(info: dict) -> None:
+        bar.n = info["time"] / info["end"]
+        bar.set_postfix_str(f"cycle {info['cycle']:.3f} t={info['time']:.4f}s CFL={info['cfl']:.2f} "
+                            f"imbalance={100 * info['imbalance']:+.3f}%", refresh=False)
+        if info["step"] % 20 == 0:
+            bar.refresh()
+
+    try:
+        summary = simulate(mesh, case, params, resume=args.resume, progress=progress)
+    finally:
+        bar.close()
+    mb = summary["mass_balance"]
+    print(f"flow written to {case / 'flow'}: {summary['steps']} steps, {summary['seconds']:.0f} s, "
+          f"max CFL {summary['cfl_max']:.2f}, max mass imbalance {100 * mb['imbalance_max_abs']:.3f}%, "
+          f"pressure drop {summary['pressure_drop_pa']['cycle_mean']:.1f} Pa")
+    return 0
+
+
+def cmd_verify(args) -> int:
+    from carotid.flow.verify import run_verification
+
+    results = run_verification(quick=args.quick, out=sys.stdout)
+    return 0 if all(r["passed"] for r in results) else 1
+
+
+def register(subparsers) -> None:
+    """Add ``simulate`` and ``verify`` to an argparse subparsers object."""
+    p = subparsers.add_parser("simulate", help="CBS blood-flow simulation on CASE_DIR/mesh.vtu")
+    p.add_argument("case_dir", type=Path, metavar="CASE_DIR")
+    p.add_argument("--cycles", type=float, default=3.0, help="cardiac cycles (default 3)")
+    p.add_argument("--dt", type=float, help="fixed time step in s (default: adaptive)")
+    p.add_argument("--waveform", type=Path, metavar="FILE", help="inlet flow CSV: time s, flow mL/s")
+    p.add_argument("--split", nargs="+", metavar="RATIO",
+                   help="outflow fraction per outlet in label order, e.g. 0.65:0.35 (default: Murray's law)")
+    p.add_argument("--turbulence", choices=("none", "sa"), default="none", help="Spalart-Allmaras or none")
+    p.add_argument("--output-every", type=int, default=50, metavar="K", help="steps between outputs (50)")
+    p.add_argument("--checkpoint-every", type=int, default=500, metavar="M", help="steps between checkpoints")
+    p.add_argument("--resume", action="store_true", help="continue from CASE_DIR/flow/checkpoint.npz")
+    p.set_defaults(func=cmd_simulate)
+
+    p = subparsers.add_parser("verify", help="run the analytic flow verification cases (Poiseuille, Womersley, "
+                                             "mass split) and print pass/fail")
+    p.add_argument("--quick", action="store_true", help="coarse meshes and short runs (about a minute)")
+    p.set_defaults(func=cmd_verify)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """A stand-alone parser with only these subcommands (tests)."""
+    parser = argparse.ArgumentParser(prog="carotid")
+    register(parser.add_subparsers(dest="command", required=True))
+    return parser

@@ -1,0 +1,267 @@
+"""The flow stage driver: mesh + waveform -> CBS run -> ``CASE_DIR/flow`` (series, WSS, indices, summary).
+
+Blood is Newtonian (rho 1060 kg/m^3, mu 3.5e-3 Pa s; validation.md).  The inlet carries the generalised
+Womersley profile of the waveform (:func:`carotid.flow.womersley.inlet_profile`, solved on the actual inlet
+face); the outlets share the inflow by Murray's law or user ratios, imposed every step (see
+:mod:`carotid.flow.cbs`).  Outputs are written every ``output_every`` steps and checkpoints every
+``checkpoint_every`` steps; ``resume=True`` continues from the last checkpoint and, the run being
+deterministic (the time-step sequence follows from the stored state, the pressure warm start is stored),
+ends with the same fields as an uninterrupted run.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time as _time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from carotid.errors import CarotidError
+from carotid.flow.cbs import CBSSolver
+from carotid.flow.mesh import INLET, MM, FlowMesh
+from carotid.flow.output import FlowWriter, load_checkpoint, save_checkpoint, write_wall_vtp
+from carotid.flow.wss import WallShear
+from carotid.io import write_json
+
+
+@dataclass
+class FlowParameters:
+    """Settings of one simulation (SI units).
+
+    Attributes
+    ----------
+    cycles : float
+        Cardiac cycles to run.
+    dt : float or None
+        Fixed time step, s; None: adaptive (``safety`` x the convective/diffusive limit).
+    safety : float
+        Safety factor of the adaptive step.
+    waveform : Waveform or None
+        Inlet flow; None: :func:`carotid.flow.waveform.carotid_waveform`.
+    n_harmonics : int
+        Harmonics of the inlet profile.
+    split : sequence of float or None
+        Flow fraction per outlet (ascending label: 3, 4, ...); None: Murray's law.
+    turbulence : {"none", "sa"}
+    output_every, checkpoint_every : int
+        Steps between outputs and between checkpoints.
+    rho, mu : float
+        Density kg/m^3 and dynamic viscosity Pa s.
+    max_speed : float
+        |u| above which the run is declared blown up, m/s.
+    pressure : str
+        Pressure solver, see :class:`carotid.flow.cbs.PressureSolver`.
+    """
+
+    cycles: float = 3.0
+    dt: float | None = None
+    safety: float = 0.8
+    waveform: object = None
+    n_harmonics: int = 10
+    split: tuple | None = None
+    turbulence: str = "none"
+    output_every: int = 50
+    checkpoint_every: int = 500
+    rho: float = 1060.0
+    mu: float = 3.5e-3
+    max_speed: float = 20.0
+    pressure: str = "auto"
+    extra: dict = field(default_factory=dict)
+
+    def validate(self) -> FlowParameters:
+        if not self.cycles > 0:
+            raise CarotidError(f"--cycles must be positive (got {self.cycles})")
+        if self.dt is not None and not self.dt > 0:
+            raise CarotidError(f"--dt must be positive (got {self.dt})")
+        if self.turbulence not in ("none", "sa"):
+            raise CarotidError(f"--turbulence must be 'sa' or 'none' (got {self.turbulence!r})")
+        if self.output_every < 1 or self.checkpoint_every < 1:
+            raise CarotidError("--output-every and the checkpoint interval must be at least 1 step")
+        if not (0 < self.safety <= 1):
+            raise CarotidError(f"the time-step safety factor must be in (0, 1] (got {self.safety})")
+        return self
+
+    def fingerprint(self, waveform) -> str:
+        """Hash of everything that changes the solution (not ``cycles`` nor output settings)."""
+        keys = {k: v for k, v in asdict(self).items()
+                if k not in ("cycles", "output_every", "checkpoint_every", "waveform", "extra")}
+        keys["waveform"] = np.round(np.r_[waveform.period_s, waveform.times_s, waveform.flow_m3s], 15).tolist()
+        return hashlib.sha256(json.dumps(keys, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def stabilisation_velocity(waveform, inlet_area: float) -> float:
+    """Velocity scale U of the pressure stabilisation time ``tau_e`` (:class:`CBSSolver`), m/s.
+
+    Twice the cycle-mean inlet speed (``inlet_area`` in m^2).  Not the systolic peak: the smaller
+    ``tau_e`` it gives lets near-wall transverse velocity oscillations grow (measured on the Womersley
+    verification tube: |u_transverse| 0.6 m/s after 0.015 s with U = 2 peak / A, 1e-4 m/s with this U).
+    """
+    t = np.linspace(0.0, waveform.period_s, 256, endpoint=False)
+    return 2.0 * float(np.mean(np.abs(waveform.flow(t)))) / inlet_area
+
+
+def _build(mesh: FlowMesh, params: FlowParameters):
+    from carotid.flow.turbulence import SpalartAllmaras
+    from carotid.flow.waveform import carotid_waveform
+    from carotid.flow.womersley import inlet_profile
+
+    waveform = params.waveform if params.waveform is not None else carotid_waveform()
+    nu = params.mu / params.rho
+    nodes, pts, tris = mesh.face_patch(INLET)
+    profile = inlet_profile(pts, tris, mesh.face_normal(INLET), waveform, nu, params.n_harmonics)
+    turbulence = SpalartAllmaras(mesh, nu) if params.turbulence == "sa" else None
+    solver = CBSSolver(mesh, profile.velocity, nu, split=params.split, dt=params.dt, safety=params.safety,
+                       velocity_scale=stabilisation_velocity(waveform, mesh.face_area(INLET)),
+                       turbulence=turbulence, pressure=params.pressure)
+    wall = WallShear(mesh, solver.volumes, distance=None if turbulence is None else turbulence.d)
+    return waveform, solver, wall
+
+
+def _diagnostics(solver: CBSSolver, info, rho: float) -> dict:
+    mesh = solver.mesh
+    p = solver.pressure_pa(rho)
+    nodes, w = mesh.flux_weights(INLET)
+    a = np.linalg.norm(w, axis=1)
+    p_in = float(a @ p[nodes] / a.sum())
+    p_out = [float(np.linalg.norm(wj, axis=1) @ p[nj] / np.linalg.norm(wj, axis=1).sum())
+             for nj, wj in solver.out_flux]
+    return {"dt": info.dt, "cfl": info.cfl, "inflow": info.inflow, "outflow": info.outflow.tolist(),
+            "imbalance": info.imbalance, "imbalance_p1": info.imbalance_p1,
+            "dp": p_in - float(np.average(p_out, weights=solver.outlet_areas))}
+
+
+def simulate(mesh, case_dir, params: FlowParameters | None = None, resume: bool = False,
+             progress: Callable[[dict], None] | None = None) -> dict:
+    """Run the flow stage and write ``CASE_DIR/flow``.
+
+    Parameters
+    ----------
+    mesh : FlowMesh or path
+        The volume mesh (a path is read with :meth:`FlowMesh.from_vtu`).
+    case_dir : path
+        Case folder; outputs go to ``case_dir/flow``.
+    params : FlowParameters
+    resume : bool
+        Continue from ``flow/checkpoint.npz``.
+    progress : callable, optional
+        Called after every step with ``{"step", "time", "cycle", "cfl", "imbalance", "end"}``.
+
+    Returns
+    -------
+    dict
+        The summary also written to ``flow/summary.json``.
+    """
+    params = (params or FlowParameters()).validate()
+    mesh = mesh if isinstance(mesh, FlowMesh) else FlowMesh.from_vtu(mesh)
+    flow_dir = Path(case_dir) / "flow"
+    ckpt = flow_dir / "checkpoint.npz"
+    waveform, solver, wall = _build(mesh, params)
+    period = waveform.period_s
+    t_end = params.cycles * period
+    fp = params.fingerprint(waveform)
+    seconds = 0.0
+    if resume:
+        if not ckpt.is_file():
+            raise CarotidError(f"no checkpoint to resume from in {flow_dir}: run without --resume")
+        state, meta = load_checkpoint(ckpt)
+        if meta["fingerprint"] != fp:
+            raise CarotidError("the checkpoint was made with other settings (dt, split, waveform, turbulence...): "
+                               "use the same options or run without --resume")
+        solver.load_state(state)
+        writer = FlowWriter(flow_dir, mesh, wall.nodes, wall.local_faces)
+        writer.truncate(meta["records"])
+        seconds = meta["seconds"]
+    else:
+        solver.reset()
+        writer = FlowWriter(flow_dir, mesh, wall.nodes, wall.local_faces)
+        _output(writer, solver, wall, params, {"dt": 0.0, "cfl": 0.0, "inflow": solver.inflow(solver.u),
+                                               "outflow": solver.outflows(solver.u).tolist(), "imbalance": 0.0,
+                                               "imbalance_p1": 0.0,
+                                               "dp": 0.0})
+        _checkpoint(ckpt, solver, writer, fp, seconds)
+    start = _time.perf_counter() - seconds
+    while solver.t < t_end * (1 - 1e-12):
+        info = solver.step(max_dt=t_end - solver.t)
+        ok, node = solver.check_finite(params.max_speed)
+        if not ok:
+            speed = float(np.linalg.norm(solver.u[node]))
+            where = np.round(mesh.points[node] / MM, 2).tolist()
+            raise CarotidError(f"the flow solution blew up at step {solver.step_count} (t = {solver.t:.5f} s): "
+                               f"|u| = {speed:.3g} m/s at {where} mm; the last good checkpoint is kept in {ckpt} "
+                               "(try a smaller --dt or a finer mesh)")
+        last = solver.t >= t_end * (1 - 1e-12)
+        diag = None
+        if solver.step_count % params.output_every == 0 or last:
+            diag = _diagnostics(solver, info, params.rho)
+            _output(writer, solver, wall, params, diag)
+        if solver.step_count % params.checkpoint_every == 0 or last:
+            _checkpoint(ckpt, solver, writer, fp, _time.perf_counter() - start)
+        if progress is not None:
+            progress({"step": solver.step_count, "time": solver.t, "cycle": solver.t / period, "cfl": info.cfl,
+                      "imbalance": info.imbalance, "end": t_end})
+    seconds = _time.perf_counter() - start
+    summary = _finish(flow_dir, mesh, solver, wall, writer, params, waveform, seconds)
+    write_json(summary, flow_dir / "summary.json")
+    return summary
+
+
+def _output(writer: FlowWriter, solver: CBSSolver, wall: WallShear, params: FlowParameters, diag: dict) -> None:
+    faces = wall.faces_wss(solver.velocity_gradients(), params.mu)
+    fields = {"velocity": solver.u, "pressure": solver.pressure_pa(params.rho)}
+    if solver.turbulence is not None:
+        fields["nu_t"] = solver.turbulence.nu_t(solver.nut_hat)
+    writer.write(solver.step_count, solver.t, fields, {"WSS": wall.nodes_wss(faces), "WSS_face": faces})
+    writer.records[-1]["diagnostics"] = diag
+
+
+def _checkpoint(path: Path, solver: CBSSolver, writer: FlowWriter, fp: str, seconds: float) -> None:
+    save_checkpoint(path, solver.state(), {"records": writer.records, "fingerprint": fp, "seconds": seconds})
+
+
+def _finish(flow_dir, mesh, solver, wall, writer, params, waveform, seconds) -> dict:
+    from carotid.flow.indices import wall_indices
+
+    period = waveform.period_s
+    since = max(solver.t - period, 0.0)
+    times, wss = writer.read_wall("WSS", since)
+    indices = {}
+    if len(times) >= 2:
+        indices = wall_indices(times, wss, wall.node_normals)
+        write_wall_vtp(flow_dir / "indices.vtp", mesh.points[wall.nodes] / MM, wall.local_faces,
+                       {**indices, "WSS_last": wss[-1]})
+    recs = [r for r in writer.records if r["time"] >= since - 1e-12 and r["step"] > 0]
+    diag = [r["diagnostics"] for r in recs]
+    inflow = np.array([d["inflow"] for d in diag])
+    outflow = np.array([d["outflow"] for d in diag])
+    frac = outflow / inflow[:, None]
+    labels = mesh.outlet_labels
+    mag = np.linalg.norm(wss[-1], axis=1) if len(wss) else np.zeros(1)
+    finite = {k: v[np.isfinite(v)] for k, v in indices.items()}
+    return {
+        "steps": solver.step_count, "time_s": solver.t, "cycles": solver.t / period, "seconds": seconds,
+        "seconds_per_step": seconds / max(solver.step_count, 1),
+        "mesh": {"nodes": mesh.n_points, "tetrahedra": len(mesh.tets), "wall_triangles": len(wall.faces)},
+        "dt_s": {"min": min(d["dt"] for d in diag), "max": max(d["dt"] for d in diag)},
+        "cfl_max": max(d["cfl"] for d in diag),
+        "mass_balance": {
+            "inflow_mean_m3s": float(inflow.mean()),
+            "imbalance_max_abs": float(np.max(np.abs([d["imbalance"] for d in diag]))),
+            "imbalance_p1_max_abs": float(np.max(np.abs([d["imbalance_p1"] for d in diag]))),
+            "note": "outflows are the consistent fluxes (continuity residual at the outlet nodes); "
+                    "imbalance_p1 uses int u.n of the P1 velocity",
+            "outlets": {str(lab): {"target_fraction": float(solver.split[j]),
+                                   "fraction_of_inflow_mean": float(frac[:, j].mean()),
+                                   "error_max": float(np.max(np.abs(outflow[:, j] / outflow.sum(1) - solver.split[j])))}
+                        for j, lab in enumerate(labels)}},
+        "pressure_drop_pa": {"last": diag[-1]["dp"], "cycle_mean": float(np.mean([d["dp"] for d in diag]))},
+        "wss_pa_last_step": {"mean": float(mag.mean()), "max": float(mag.max())},
+        "indices": {k: {"min": float(v.min()), "mean": float(v.mean()), "max": float(v.max())}
+                    for k, v in finite.items() if len(v)},
+        "twssg": "temporal: (1/T) int |d tau/dt| dt",
+        "settings": {k: v for k, v in asdict(params).items() if k not in ("waveform", "extra")},
+        "outputs": len(writer.records),
+    }

@@ -1,0 +1,110 @@
+"""The ``carotid mesh`` subcommand.
+
+``carotid mesh CASE_DIR`` meshes ``CASE_DIR/surface.vtp`` (the labelled
+output of ``carotid surface``); ``carotid mesh --from-surface FILE -o
+CASE_DIR`` meshes any surface file pyvista reads (VTP, VTK, STL, PLY, OBJ):
+a labelled closed surface is used as is, an open one gets a planar cap per
+boundary loop, an unlabelled closed one gets its flat end caps detected.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import pyvista as pv
+
+from carotid.errors import CarotidError
+from carotid.mesh.boundary import LABELS, cap_open_ends, edge_faces, label_flat_caps
+from carotid.mesh.core import CORES
+from carotid.mesh.io import write_mesh
+from carotid.mesh.mesher import build_mesh
+
+
+def read_surface(path: Path) -> pv.PolyData:
+    """Read a triangle surface file; CarotidError if it is missing or unreadable."""
+    if not path.is_file():
+        raise CarotidError(f"surface file not found: {path}")
+    try:
+        data = pv.read(path)
+    except Exception as exc:  # vtk readers raise assorted errors
+        raise CarotidError(f"cannot read the surface {path}: {exc}") from None
+    if not isinstance(data, pv.PolyData):
+        data = data.extract_surface(algorithm="dataset_surface")
+    if data.n_cells == 0:
+        raise CarotidError(f"the surface {path} has no faces")
+    return data
+
+
+def external_surface(poly: pv.PolyData) -> pv.PolyData:
+    """A labelled closed surface from any triangle surface (see the module docstring)."""
+    poly = poly.triangulate().clean()
+    _, _, counts = edge_faces(poly.regular_faces)
+    if (counts == 1).any():
+        return cap_open_ends(poly)
+    if LABELS in poly.cell_data:
+        return poly
+    return label_flat_caps(poly)
+
+
+def mesh_case(surface: pv.PolyData, case_dir: Path, **params) -> dict:
+    """Build the mesh of ``surface`` and write it into ``case_dir``; return the quality report."""
+    mesh, quality = build_mesh(surface, **params)
+    write_mesh(mesh, case_dir, quality)
+    return quality
+
+
+def cmd_mesh(args: argparse.Namespace) -> int:
+    """Run ``carotid mesh`` (see :func:`register`)."""
+    if args.from_surface is not None:
+        if args.output is None:
+            raise CarotidError("--from-surface needs -o CASE_DIR")
+        surface = external_surface(read_surface(args.from_surface))
+        case_dir = args.output
+    else:
+        if args.case_dir is None:
+            raise CarotidError("give CASE_DIR, or --from-surface FILE -o CASE_DIR")
+        path = args.case_dir / "surface.vtp"
+        if not path.is_file():
+            raise CarotidError(f"no surface.vtp in {args.case_dir}: run `carotid surface` first")
+        surface = read_surface(path)
+        case_dir = args.output or args.case_dir
+    thickness_ratio = args.thickness_ratio if args.thickness_ratio is not None else 0.3
+    quality = mesh_case(surface, case_dir, layers=args.layers, ratio=args.ratio, thickness=args.thickness,
+                        thickness_ratio=None if args.thickness is not None else thickness_ratio,
+                        size=args.size, core=args.core, lloyd_iterations=args.lloyd)
+    elements, core = quality["elements"], quality["core"]["min_dihedral"]
+    print(f"mesh written to {case_dir}: {elements['tetrahedra']} tetrahedra ({elements['layer']} in "
+          f"{args.layers} layers, {elements['core']} core), core min dihedral {core['min_deg']:.1f} deg, "
+          f"volume error {quality['volume']['relative_error']:.1e}, {quality['seconds']['total']:.1f} s")
+    return 0
+
+
+def _positive(kind):
+    def parse(text: str):
+        value = kind(text)
+        if value <= 0:
+            raise argparse.ArgumentTypeError(f"must be positive: {text}")
+        return value
+    return parse
+
+
+def register(subparsers) -> argparse.ArgumentParser:
+    """Add the ``mesh`` subcommand to an argparse subparsers object."""
+    p = subparsers.add_parser("mesh", help="boundary-layer tetrahedral volume mesh of the lumen surface",
+                              description=__doc__.split("\n\n")[1])
+    p.add_argument("case_dir", nargs="?", type=Path, metavar="CASE_DIR",
+                   help="case folder holding surface.vtp; the mesh files are written there")
+    p.add_argument("--from-surface", type=Path, metavar="FILE", help="mesh this surface file instead")
+    p.add_argument("-o", "--output", type=Path, metavar="CASE_DIR", help="output folder (with --from-surface)")
+    p.add_argument("--layers", type=int, default=10, help="boundary sub-layers N (default 10; 0: none)")
+    p.add_argument("--ratio", type=float, default=1.2, help="height ratio f between sub-layers (default 1.2)")
+    thick = p.add_mutually_exclusive_group()
+    thick.add_argument("--thickness", type=_positive(float), metavar="MM", help="total layer thickness in mm")
+    thick.add_argument("--thickness-ratio", type=_positive(float), metavar="R",
+                       help="total layer thickness as a fraction of the local radius (default 0.3)")
+    p.add_argument("--size", type=_positive(float), metavar="MM", help="core element size (default: surface edge)")
+    p.add_argument("--core", choices=CORES, default="gmsh", help="core mesher (default gmsh HXT)")
+    p.add_argument("--lloyd", type=int, default=5, metavar="N", help="Lloyd smoothing iterations (default 5)")
+    p.set_defaults(func=cmd_mesh)
+    return p

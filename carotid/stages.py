@@ -1,0 +1,240 @@
+"""The stages after segmentation as ``carotid run`` sees them: TOML-friendly parameters and runners.
+
+Each ``*StageParameters`` dataclass is one section of the run configuration
+(``carotid config --show``); each ``run_*`` function reads the stage's input
+files from CASE_DIR, calls the stage's plain-function API and writes its
+outputs.  Segmentation's own section lives beside it in
+``carotid.segment.segmentation``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from carotid.errors import CarotidError
+
+
+@dataclass
+class CenterlineStageParameters:
+    """The ``[centerlines]`` section.
+
+    Attributes
+    ----------
+    prune : float
+        Terminal branches shorter than this many radii of their parent vessel are spurs and removed.
+    smoothing : float
+        Gaussian smoothing of each axis along its arc length, mm (0: none).
+    """
+
+    prune: float = 2.0
+    smoothing: float = 1.0
+
+    def validate(self) -> "CenterlineStageParameters":
+        """Raise CarotidError for values outside their range."""
+        if self.prune < 0 or self.smoothing < 0:
+            raise CarotidError("bad centerline parameter: prune and smoothing must not be negative")
+        return self
+
+
+@dataclass
+class SurfaceStageParameters:
+    """The ``[surface]`` section.
+
+    Attributes
+    ----------
+    target_edge_mm : float
+        Target edge length of the remeshed surface, mm (used when edge_radius_ratio is 0).
+    edge_radius_ratio : float
+        Target edge length as this fraction of the local radius (0: use target_edge_mm).
+    edge_min_mm, edge_max_mm : float
+        Bounds of a radius-relative edge length, mm.
+    inset_radii : float
+        Caps are cut this many end radii inside each open end.
+    flow_extension_radii : float
+        Length of the cylindrical flow extension at each cap, in radii (0: none).
+    smoothing_iterations : int
+        Taubin smoothing iterations (lambda/mu pairs).
+    remesh_iterations : int
+        Isotropic remeshing rounds.
+    """
+
+    target_edge_mm: float = 0.3
+    edge_radius_ratio: float = 0.0
+    edge_min_mm: float = 0.15
+    edge_max_mm: float = 1.0
+    inset_radii: float = 1.5
+    flow_extension_radii: float = 0.0
+    smoothing_iterations: int = 30
+    remesh_iterations: int = 8
+
+    def validate(self) -> "SurfaceStageParameters":
+        """Raise CarotidError for values outside their range."""
+        if self.target_edge_mm <= 0 or self.edge_radius_ratio < 0 or not 0 < self.edge_min_mm <= self.edge_max_mm:
+            raise CarotidError("bad surface parameter: edge sizes must be positive with edge_min_mm <= edge_max_mm")
+        if self.inset_radii < 0 or self.flow_extension_radii < 0:
+            raise CarotidError("bad surface parameter: inset_radii and flow_extension_radii must not be negative")
+        return self
+
+
+@dataclass
+class MeshStageParameters:
+    """The ``[mesh]`` section.
+
+    Attributes
+    ----------
+    layers : int
+        Prism sub-layers N at the wall (0: none).
+    ratio : float
+        Height ratio f between neighbouring sub-layers (thinnest at the wall).
+    thickness_mm : float
+        Total layer thickness, mm (0: use thickness_ratio).
+    thickness_ratio : float
+        Total layer thickness as a fraction of the local radius.
+    size_mm : float
+        Target core edge length, mm (0: the median wall edge).
+    core : str
+        Core mesher: "gmsh" (HXT) or "tetgen".
+    lloyd_iterations : int
+        3-D Lloyd smoothing iterations of the interior core nodes.
+    """
+
+    layers: int = 10
+    ratio: float = 1.2
+    thickness_mm: float = 0.0
+    thickness_ratio: float = 0.3
+    size_mm: float = 0.0
+    core: str = "gmsh"
+    lloyd_iterations: int = 5
+
+    def validate(self) -> "MeshStageParameters":
+        """Raise CarotidError for values outside their range."""
+        if self.layers < 0 or self.ratio <= 0 or self.thickness_mm < 0 or self.size_mm < 0:
+            raise CarotidError("bad mesh parameter: layers, ratio, thickness and size must be positive")
+        if self.core not in ("gmsh", "tetgen"):
+            raise CarotidError(f"bad mesh parameter: core must be 'gmsh' or 'tetgen', not {self.core!r}")
+        return self
+
+
+@dataclass
+class FlowStageParameters:
+    """The ``[simulate]`` section (SI units).
+
+    Attributes
+    ----------
+    cycles : float
+        Cardiac cycles to run.
+    dt : float
+        Fixed time step, s (0: adaptive from the convective and diffusive limits).
+    waveform : str
+        CSV of the inlet flow (time s, flow mL/s); empty: the built-in common carotid waveform.
+    split : list of float
+        Fraction of the flow leaving each outlet (CellEntityIds 3, 4, ...); empty: Murray's law.
+    turbulence : str
+        "none" or "sa" (Spalart-Allmaras).
+    output_every : int
+        Steps between outputs of the time series.
+    checkpoint_every : int
+        Steps between checkpoints.
+    rho : float
+        Blood density, kg/m^3.
+    mu : float
+        Blood dynamic viscosity, Pa s.
+    """
+
+    cycles: float = 3.0
+    dt: float = 0.0
+    waveform: str = ""
+    split: list = field(default_factory=list)
+    turbulence: str = "none"
+    output_every: int = 50
+    checkpoint_every: int = 500
+    rho: float = 1060.0
+    mu: float = 3.5e-3
+
+    def flow_parameters(self):
+        """The solver's ``FlowParameters``, validated."""
+        from carotid.flow.simulate import FlowParameters
+
+        waveform = None
+        if self.waveform:
+            from carotid.flow.waveform import read_waveform_csv
+
+            waveform = read_waveform_csv(self.waveform)
+        fields = {**asdict(self), "dt": self.dt or None, "waveform": waveform, "split": tuple(self.split) or None}
+        return FlowParameters(**fields).validate()
+
+    def validate(self) -> "FlowStageParameters":
+        """Raise CarotidError for values outside their range (the solver checks the rest)."""
+        if self.dt < 0 or self.cycles <= 0 or self.rho <= 0 or self.mu <= 0:
+            raise CarotidError("bad simulate parameter: cycles, rho and mu must be positive and dt not negative")
+        if self.split and (any(s <= 0 for s in self.split) or abs(sum(self.split) - 1) > 1e-6):
+            raise CarotidError(f"bad simulate parameter: split {self.split} must be positive and sum to 1")
+        return self
+
+
+def run_centerlines(case_dir: Path, params: dict, inputs: list[Path]) -> None:
+    """The ``centerlines`` stage: ``segmentation/`` -> ``centerlines.vtp``, ``geometry.json``."""
+    from carotid.centerline.command import run_centerlines as compute
+
+    p = CenterlineStageParameters(**params).validate()
+    compute(case_dir, prune=p.prune, smoothing=p.smoothing)
+
+
+def run_surface(case_dir: Path, params: dict, inputs: list[Path]) -> None:
+    """The ``surface`` stage: level set and centerlines -> ``surface.vtp``, ``surface_quality.json``."""
+    from carotid.centerline import read_centerlines
+    from carotid.io import read_image
+    from carotid.surface.pipeline import build_surface, write_surface
+
+    p = SurfaceStageParameters(**params).validate()
+    levelset = read_image(case_dir / "segmentation" / "levelset.nii.gz")
+    surface, caps, quality = build_surface(
+        levelset, read_centerlines(case_dir / "centerlines.vtp"), target_edge_mm=p.target_edge_mm,
+        edge_radius_ratio=p.edge_radius_ratio or None, edge_bounds_mm=(p.edge_min_mm, p.edge_max_mm),
+        inset_radii=p.inset_radii, flow_extension_radii=p.flow_extension_radii,
+        smoothing_iterations=p.smoothing_iterations, remesh_iterations=p.remesh_iterations)
+    write_surface(surface, case_dir, quality=quality, caps=caps)
+
+
+def run_mesh(case_dir: Path, params: dict, inputs: list[Path]) -> None:
+    """The ``mesh`` stage: ``surface.vtp`` -> ``mesh.vtu`` (+ .msh, XDMF), ``mesh_quality.json``."""
+    import pyvista as pv
+
+    from carotid.mesh.io import write_mesh
+    from carotid.mesh.mesher import build_mesh
+
+    p = MeshStageParameters(**params).validate()
+    mesh, quality = build_mesh(pv.read(case_dir / "surface.vtp"), layers=p.layers, ratio=p.ratio,
+                               thickness=p.thickness_mm or None, thickness_ratio=p.thickness_ratio,
+                               size=p.size_mm or None, core=p.core, lloyd_iterations=p.lloyd_iterations)
+    write_mesh(mesh, case_dir, quality)
+
+
+def run_simulate(case_dir: Path, params: dict, inputs: list[Path]) -> None:
+    """The ``simulate`` stage: ``mesh.vtu`` -> ``flow/``; resumes from the stage's checkpoint when it matches."""
+    from carotid.flow.simulate import simulate
+
+    flow = FlowStageParameters(**params).validate().flow_parameters()
+    checkpoint = case_dir / "flow" / "checkpoint.npz"
+    resume = checkpoint.exists() and _checkpoint_matches(checkpoint, case_dir, flow)
+    simulate(case_dir / "mesh.vtu", case_dir, flow, resume=resume)
+
+
+def _checkpoint_matches(checkpoint: Path, case_dir: Path, flow) -> bool:
+    """Whether a flow checkpoint was made with these settings (else the run starts afresh)."""
+    from carotid.flow.output import load_checkpoint
+    from carotid.flow.waveform import carotid_waveform
+
+    try:
+        _, meta = load_checkpoint(checkpoint)
+    except (CarotidError, OSError, ValueError, KeyError):
+        return False
+    return meta.get("fingerprint") == flow.fingerprint(flow.waveform or carotid_waveform())
+
+
+def stage_array(values) -> np.ndarray:
+    """A config list as a float array (helper for tests and callers)."""
+    return np.asarray(values, float)

@@ -1,0 +1,147 @@
+"""Lumen surfaces made by other tools (STL, VTP, VTK, OBJ, PLY), closed or open-ended, and their level set.
+
+The surface is cleaned (duplicate points merged), reduced to its largest component and checked for
+2-manifoldness; open ends (boundary loops, as left by tools that do not cap) are closed by planar caps
+so that inside and outside are defined.  ``levelset_from_surface`` samples the signed distance on a
+regular grid: the sign from VTK's scan conversion (vtkPolyDataToImageStencil through pyvista), the
+distance exact (to the nearest triangle, ``carotid.surface.project``) near the surface and from
+scipy's Euclidean distance transform further away, which the centerline stage then
+treats like a segmentation's level set.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pyvista as pv
+from scipy import ndimage
+
+from carotid.errors import CarotidError
+from carotid.io import Volume
+from carotid.surface.clip import planar_cap
+from carotid.surface.mesh import boundary_loops, from_polydata, largest_component, signed_volume, to_polydata
+from carotid.surface.project import TriangleProjector
+from carotid.surface.quality import manifold_report
+
+SUFFIXES = (".stl", ".vtp", ".vtk", ".obj", ".ply")
+METRES_EXTENT = 0.5  # a carotid bifurcation spans several cm: below 0.5 units it is in metres
+
+
+def _close_loops(points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Close every boundary loop with a cap in its best-fit plane; returns (points, faces, loops closed)."""
+    loops = boundary_loops(faces)
+    n_boundary = int(manifold_report(len(points), faces)["boundary_edges"])
+    if sum(len(lp) for lp in loops) != n_boundary:
+        raise CarotidError("the surface's open ends are not simple loops (pinched boundary): it cannot be closed")
+    for loop in loops:  # loop over open ends
+        rim = points[loop]
+        centred = rim - rim.mean(axis=0)
+        normal = np.linalg.svd(centred, full_matrices=False)[2][2]
+        # the cap runs the rim against the wall, so its normal is opposite to the rim's winding
+        winding = np.cross(centred, np.roll(centred, -1, axis=0)).sum(axis=0)
+        normal = normal if winding @ normal < 0 else -normal
+        interior, cap = planar_cap(points, loop, normal)
+        points = np.vstack([points, interior])
+        faces = np.vstack([faces, cap])
+    return points, faces, len(loops)
+
+
+def load_external_surface(path: str | Path, scale: float | None = None) -> tuple[pv.PolyData, int]:
+    """Read, clean and close a lumen surface from another tool.
+
+    Parameters
+    ----------
+    path : str or Path
+        STL, VTP, VTK, OBJ or PLY file, in mm (or scaled to mm by ``scale``).
+    scale : float, optional
+        Factor applied to the coordinates (e.g. 1000 for a surface in metres).
+
+    Returns
+    -------
+    surface : pyvista.PolyData
+        Closed, consistently oriented (outward) triangle surface in mm.
+    open_ends : int
+        Number of boundary loops that were closed by planar caps.
+
+    Raises
+    ------
+    CarotidError
+        Unreadable file, no triangles, coordinates that look like metres, a non-manifold surface, or
+        open ends that are not simple loops.
+    """
+    path = Path(path)
+    if path.suffix.lower() not in SUFFIXES:
+        raise CarotidError(f"{path}: unsupported surface format (use one of {', '.join(SUFFIXES)})")
+    if not path.is_file():
+        raise CarotidError(f"{path}: no such file")
+    try:
+        mesh = pv.read(path)
+    except Exception as exc:  # VTK readers raise various errors
+        raise CarotidError(f"{path}: cannot read the surface ({exc})") from None
+    if not isinstance(mesh, pv.PolyData):
+        mesh = mesh.extract_surface()
+    mesh = mesh.triangulate().clean(tolerance=1e-9, absolute=False)
+    if mesh.n_cells == 0:
+        raise CarotidError(f"{path}: the file holds no triangles")
+    points, faces, _ = from_polydata(pv.PolyData(mesh.points, mesh.faces))
+    if scale is not None:
+        if not scale > 0:
+            raise CarotidError(f"--scale {scale} must be positive")
+        points = points * float(scale)
+    points, faces, _ = largest_component(points, faces)
+    extent = float(np.ptp(points, axis=0).max())
+    if extent < METRES_EXTENT:
+        raise CarotidError(f"{path}: the surface spans {extent:.3g} units: looks like metres, pass --scale 1000")
+    report = manifold_report(len(points), faces)
+    if report["nonmanifold_edges"] or report["nonmanifold_vertices"]:
+        raise CarotidError(f"{path}: the surface is not a 2-manifold ({report['nonmanifold_edges']} edges in more "
+                           f"than two triangles, {report['nonmanifold_vertices']} pinched vertices); repair it first")
+    if not report["consistently_oriented"]:
+        oriented = to_polydata(points, faces).compute_normals(consistent_normals=True, auto_orient_normals=False,
+                                                              split_vertices=False, point_normals=False)
+        points, faces, _ = from_polydata(pv.PolyData(oriented.points, oriented.faces))
+    points, faces, open_ends = _close_loops(points, faces)
+    if not manifold_report(len(points), faces)["watertight"]:
+        raise CarotidError(f"{path}: the surface could not be closed into a watertight surface")
+    if signed_volume(points, faces) < 0:
+        faces = faces[:, ::-1].copy()
+    return to_polydata(points, faces, np.ones(len(faces), np.int32)), open_ends
+
+
+def levelset_from_surface(surface: pv.PolyData, spacing: float = 0.25, margin: float = 2.0,
+                          band_mm: float = 1.0) -> Volume:
+    """Signed distance to a closed surface on a regular grid (mm, negative inside).
+
+    Parameters
+    ----------
+    surface : pyvista.PolyData
+        Closed, outward-oriented triangle surface in mm.
+    spacing : float
+        Isotropic voxel size in mm.
+    margin : float
+        Space around the surface's bounding box, mm.
+    band_mm : float
+        Inside and within this distance outside the surface the distance is exact (to the nearest
+        triangle); further out, the Euclidean distance transform of the voxelised inside (within a voxel).
+
+    Returns
+    -------
+    Volume
+        float32 signed distance, clipped to +-10 mm, identity direction.
+    """
+    lo = np.asarray(surface.points.min(axis=0)) - margin
+    hi = np.asarray(surface.points.max(axis=0)) + margin
+    dims = np.ceil((hi - lo) / spacing).astype(int) + 1
+    grid = pv.ImageData(dimensions=tuple(int(d) for d in dims), spacing=(spacing,) * 3, origin=tuple(lo))
+    inside = surface.voxelize_binary_mask(reference_volume=grid)
+    inside = np.asarray(inside.point_data[inside.point_data.keys()[0]]).reshape(dims[::-1]) > 0  # (k, j, i)
+    spacing_kji = np.full(3, spacing)
+    phi = np.where(inside, -ndimage.distance_transform_edt(inside, spacing_kji),
+                   ndimage.distance_transform_edt(~inside, spacing_kji)) - np.where(inside, -0.5, 0.5) * spacing
+    band = inside | (phi < band_mm)
+    points, faces, _ = from_polydata(surface)
+    near = np.asarray(grid.points).reshape(*dims[::-1], 3)[band]
+    dist = np.linalg.norm(TriangleProjector(points, faces)(near)[0] - near, axis=1)
+    phi[band] = np.where(inside[band], -dist, dist)
+    return Volume(np.clip(phi, -10.0, 10.0).astype(np.float32), (spacing,) * 3, tuple(float(x) for x in lo))

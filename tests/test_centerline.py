@@ -1,0 +1,358 @@
+"""Centerlines, branch naming and stenosis grading against analytic shapes and the phantom's truth."""
+
+import argparse
+import functools
+import json
+
+import numpy as np
+import pytest
+from conftest import ACCURACY_CASES, phantom
+from scipy.spatial import cKDTree
+
+from carotid.centerline import (Branch, Centerlines, compute_centerlines, read_centerlines, stenosis,
+                                write_centerlines)
+from carotid.centerline.axes import arclength, smooth_axis
+from carotid.centerline.command import register
+from carotid.errors import CarotidError
+from carotid.io import Volume
+
+
+@functools.lru_cache(maxsize=None)
+def phantom_centerlines(case):
+    """Centerlines of an accuracy phantom from its true SDF and mask (cached)."""
+    ph = phantom(*case)
+    return compute_centerlines(ph.sdf, ph.mask)
+
+
+def grid(shape, spacing, origin=(0.0, 0.0, 0.0), direction=None):
+    """An empty volume and the world coordinates (n, 3) of its voxels."""
+    vol = Volume(np.zeros(shape, np.float32), spacing, origin, direction)
+    xyz = vol.index_to_world(np.indices(shape).reshape(3, -1).T)
+    return vol, xyz
+
+
+def capsule_sdf(xyz, a, b, r):
+    """Signed distance (mm) to the solid swept by a sphere of radius r along the segment a-b."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    t = np.clip((xyz - a) @ (b - a) / ((b - a) @ (b - a)), 0.0, 1.0)
+    return np.linalg.norm(xyz - (a + t[:, None] * (b - a)), axis=1) - r
+
+
+def segment_distance(points, a, b):
+    """Distance (n,) of points to the segment a-b."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    t = np.clip((points - a) @ (b - a) / ((b - a) @ (b - a)), 0.0, 1.0)
+    return np.linalg.norm(points - (a + t[:, None] * (b - a)), axis=1)
+
+
+def length_inside(vol, a, b):
+    """Length (mm) of the part of segment a-b between the outermost voxel centres of a volume."""
+    t = np.linspace(0.0, 1.0, 200001)
+    kji = vol.world_to_index(a + t[:, None] * (np.asarray(b) - a))
+    inside = t[np.all((kji >= 0) & (kji <= np.array(vol.array.shape) - 1), axis=1)]
+    return (inside.max() - inside.min()) * np.linalg.norm(np.asarray(b) - a)
+
+
+def true_match(branch, ph):
+    """The phantom's true branch nearest (median distance) to a found branch, and the distances."""
+    best = None
+    for t in ph.branches:
+        d, i = cKDTree(t.points).query(branch.points)
+        if best is None or np.median(d) < np.median(best[1]):
+            best = (t, d, i)
+    return best
+
+
+def interior(branch, bifurcation, margin):
+    """Points of a branch farther than ``margin`` mm from its ends and from the bifurcation."""
+    s = arclength(branch.points)
+    return (s > margin) & (s < s[-1] - margin) & (np.linalg.norm(branch.points - bifurcation, axis=1) > margin)
+
+
+# ---------------------------------------------------------------------------------------------- analytic shapes
+
+def test_straight_tube_anisotropic_rotated_frame():
+    """A tilted cylinder through an anisotropic, rotated grid: one branch along the axis, radius R."""
+    direction = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+    vol, xyz = grid((60, 50, 50), (0.5, 0.4, 0.7), origin=(-10.0, -10.0, 40.0), direction=direction)
+    a, b, radius = np.array([-60.0, -8.0, 19.0 - 70.0]), np.array([60.0, 8.0, 19.0 + 70.0]), 2.5
+    sdf = vol.with_array(capsule_sdf(xyz, a, b, radius).reshape(vol.array.shape).astype(np.float32))
+    cl = compute_centerlines(sdf)
+    assert [br.name for br in cl.branches] == ["CCA"]
+    assert not np.isfinite(cl.bifurcation).any()
+    cca = cl.branches[0]
+    assert np.all(segment_distance(cca.points, a, b) < 0.1)
+    assert np.median(np.abs(cca.radii - radius)) < 0.03
+    # The axis runs from border to border: its length is that of the line between the outermost voxel centres.
+    assert abs(cca.length_mm - length_inside(vol, a, b)) < 0.5
+    assert cl.info["stenosis"]["nascet"] < 0.03
+
+
+def y_shape():
+    """A Y of capsules: trunk (r 3) from below the box to B, a thick daughter (r 2.5) heading posterior (+y)
+    and a thin one (r 1.8) heading anterior, both leaving through the top of the box."""
+    vol, xyz = grid((96, 64, 64), (0.45, 0.45, 0.6), origin=(-14.4, -14.4, 0.0))
+    bif = np.array([0.0, 0.0, 24.0])
+    trunk = (np.array([0.0, 0.0, -20.0]), bif, 3.0)
+    ica_dir = np.array([0.0, np.sin(np.deg2rad(25)), np.cos(np.deg2rad(25))])
+    eca_dir = np.array([0.0, -np.sin(np.deg2rad(25)), np.cos(np.deg2rad(25))])
+    ica = (bif, bif + 60 * ica_dir, 2.5)
+    eca = (bif, bif + 60 * eca_dir, 1.8)
+    sdf = np.minimum.reduce([capsule_sdf(xyz, *c) for c in (trunk, ica, eca)])
+    return vol.with_array(sdf.reshape(vol.array.shape).astype(np.float32)), bif, (trunk, ica, eca), (ica_dir, eca_dir)
+
+
+def test_y_bifurcation_names_lengths_and_radii():
+    sdf, bif, (trunk, ica, eca), (ica_dir, eca_dir) = y_shape()
+    cl = compute_centerlines(sdf)
+    assert [b.name for b in cl.branches] == ["CCA", "ICA", "ECA"]
+    assert np.linalg.norm(cl.bifurcation - bif) < 1.5
+    for name, seg in zip(("CCA", "ICA", "ECA"), (trunk, ica, eca)):
+        b = cl.branch(name)
+        assert abs(b.length_mm - length_inside(sdf, seg[0], seg[1])) < 1.5, name
+        away = interior(b, bif, 2.0 * trunk[2])
+        assert np.all(segment_distance(b.points[away], seg[0], seg[1]) < 0.15), name
+        assert np.median(np.abs(b.radii[away] - seg[2])) < 0.05, name
+    # Flow ordering: the CCA ends at the bifurcation, the daughters start there.
+    assert np.allclose(cl.branch("CCA").points[-1], cl.bifurcation)
+    assert np.allclose(cl.branch("ICA").points[0], cl.bifurcation)
+    assert cl.branch("CCA").points[0][2] < 1.0  # inlet at the inferior border
+    # The ends: inlet first, outward tangents.
+    ends = cl.ends()
+    assert ends[0][0] == "CCA" and ends[0][2][2] < -0.95
+    assert ends[1][2] @ ica_dir > 0.95 and ends[2][2] @ eca_dir > 0.95
+
+
+def test_ica_named_by_anatomy_not_by_order():
+    """Swapping which daughter is thick swaps the names: the ICA follows the bulb and the size."""
+    vol, xyz = grid((90, 60, 60), (0.45, 0.45, 0.6), origin=(-13.5, -13.5, 0.0))
+    bif = np.array([0.0, 0.0, 20.0])
+    left = bif + 60 * np.array([np.sin(0.4), 0.0, np.cos(0.4)])
+    right = bif + 60 * np.array([-np.sin(0.4), 0.0, np.cos(0.4)])
+    for thick, thin in ((left, right), (right, left)):
+        sdf = np.minimum.reduce([capsule_sdf(xyz, [0, 0, -20], bif, 3.0), capsule_sdf(xyz, bif, thick, 2.6),
+                                 capsule_sdf(xyz, bif, thin, 1.7)])
+        cl = compute_centerlines(vol.with_array(sdf.reshape(vol.array.shape).astype(np.float32)))
+        assert (cl.branch("ICA").points[-1] - bif) @ (thick - bif) > 0
+        assert (cl.branch("ECA").points[-1] - bif) @ (thin - bif) > 0
+
+
+def test_spur_from_a_wall_bump_is_pruned():
+    vol, xyz = grid((80, 40, 40), (0.5, 0.5, 0.5))
+    a, b = np.array([10.0, 10.0, -5.0]), np.array([10.0, 10.0, 50.0])
+    tube = capsule_sdf(xyz, a, b, 3.0)
+    bump = np.linalg.norm(xyz - np.array([12.6, 10.0, 20.0]), axis=1) - 1.8
+    sdf = vol.with_array(np.minimum(tube, bump).reshape(vol.array.shape).astype(np.float32))
+    cl = compute_centerlines(sdf)
+    assert [br.name for br in cl.branches] == ["CCA"]
+    assert np.all(segment_distance(cl.branches[0].points, a, b) < 0.6)
+
+
+def test_rough_thresholded_mask():
+    """Voxel-scale roughness (a fifth of the voxels near the wall flipped) grows no branches."""
+    from scipy import ndimage
+
+    ph = phantom(*ACCURACY_CASES[2])
+    rng = np.random.default_rng(0)
+    sdf = ph.sdf.array
+    rough = (sdf < 0) ^ ((np.abs(sdf) < 0.6) & (rng.random(sdf.shape) < 0.2))
+    h = ph.sdf.spacing_kji
+    phi = ndimage.distance_transform_edt(~rough, sampling=h) - ndimage.distance_transform_edt(rough, sampling=h)
+    cl = compute_centerlines(ph.sdf.with_array(phi.astype(np.float32)), ph.mask.with_array(rough.astype(np.uint8)))
+    assert [b.name for b in cl.branches] == ["CCA", "ICA", "ECA"]
+    assert np.linalg.norm(cl.bifurcation - np.asarray(ph.info["bifurcation_mm"])) <= 1.5
+    assert abs(cl.info["stenosis"]["nascet"] - ph.info["stenosis"]["nascet"]) <= 0.08
+
+
+def test_smoothing_keeps_ends_and_straight_lines():
+    line = np.linspace([0.0, 0.0, 0.0], [10.0, 5.0, 0.0], 41)
+    out = smooth_axis(line, 1.0, 0.25)
+    assert np.allclose(out[0], line[0]) and np.allclose(out[-1], line[-1])
+    assert np.allclose(np.cross(out - line[0], line[-1] - line[0])[:, 2], 0.0, atol=1e-9)
+    # Noise is reduced, the ends stay.
+    noisy = line + np.random.default_rng(0).normal(0.0, 0.1, line.shape)
+    smooth = smooth_axis(noisy, 1.0, 0.25)
+    assert np.allclose(smooth[[0, -1]], noisy[[0, -1]])
+    inner = np.linalg.norm(np.cross(smooth - line[0], (line[-1] - line[0]) / np.linalg.norm(line[-1] - line[0])),
+                           axis=1)[8:-8]
+    assert inner.max() < 0.1
+
+
+def test_stenosis_grading_of_an_analytic_profile():
+    """A straight branch whose radius dips from 2.5 to 1.0 mm: NASCET 60 %, ECST 60 %, area 84 %."""
+    s = np.linspace(0.0, 40.0, 401)
+    r = 2.5 - 1.5 * np.clip(1 - np.abs(s - 15.0) / 4.0, 0, 1)
+    g = stenosis(Branch("ICA", np.stack([0 * s, 0 * s, s], axis=1), r))
+    assert g["nascet"] == pytest.approx(0.6, abs=1e-6)
+    assert g["ecst"] == pytest.approx(0.6, abs=1e-6)
+    assert g["area_reduction"] == pytest.approx(0.84, abs=1e-6)
+    assert g["arclength_from_bifurcation_mm"] == pytest.approx(15.0, abs=0.1)
+    # A taper towards the outlet is not a stenosis.
+    taper = stenosis(Branch("ICA", np.stack([0 * s, 0 * s, s], axis=1), 3.0 - s / 40.0))
+    assert taper["nascet"] == 0.0 and taper["ecst"] < 1e-9
+
+
+# ---------------------------------------------------------------------------------------------- phantoms
+
+@pytest.mark.parametrize("case", ACCURACY_CASES)
+def test_phantom_bifurcation_names_and_stenosis(case):
+    ph = phantom(*case)
+    cl = phantom_centerlines(case)
+    assert [b.name for b in cl.branches] == ["CCA", "ICA", "ECA"]
+    assert np.linalg.norm(cl.bifurcation - np.asarray(ph.info["bifurcation_mm"])) <= 1.5
+    for b in cl.branches:
+        assert true_match(b, ph)[0].name == b.name
+    truth, found = ph.info["stenosis"], cl.info["stenosis"]
+    assert found["branch"] == "ICA"
+    assert abs(found["nascet"] - truth["nascet"]) <= 0.05
+    assert abs(found["ecst"] - truth["ecst"]) <= 0.08
+    assert abs(found["area_reduction"] - truth["area_reduction"]) <= 0.1
+    assert abs(found["arclength_from_bifurcation_mm"] - truth["arclength_from_bifurcation_mm"]) <= 1.5
+    assert np.linalg.norm(np.subtract(found["location_mm"], truth["location_mm"])) <= 1.5
+    assert cl.info["stenoses"][0]["branch"] == "ICA"  # the most severe first
+
+
+@pytest.mark.parametrize("case", ACCURACY_CASES)
+def test_phantom_axis_and_radius_accuracy(case):
+    ph = phantom(*case)
+    cl = phantom_centerlines(case)
+    r_cca = ph.branches[0].radii[0]
+    for b in cl.branches:
+        t, d, i = true_match(b, ph)
+        away = interior(b, cl.bifurcation, 3.0 * r_cca)
+        assert np.median(d[away]) <= 0.1, b.name
+        assert np.percentile(d[away], 95) <= 0.3, b.name
+        assert np.median(np.abs(b.radii[away] - t.radii[i[away]])) <= 0.05, b.name
+        assert np.percentile(np.abs(b.radii[away] - t.radii[i[away]]), 95) <= 0.3, b.name
+    # Open ends: on the true axis, tangent along it (the surface stage cuts its caps orthogonal to it).
+    for name, point, tangent, _ in cl.ends():
+        axis = next(t for t in ph.branches if t.name == name).points
+        k = int(np.argmin(np.linalg.norm(axis - point, axis=1)))
+        true_t = axis[min(k + 3, len(axis) - 1)] - axis[max(k - 3, 0)]
+        true_t *= (-1 if name == "CCA" else 1) / np.linalg.norm(true_t)
+        assert np.linalg.norm(axis[k] - point) < 0.3, name
+        assert np.degrees(np.arccos(min(tangent @ true_t, 1.0))) < 3.0, name
+
+
+def test_features_are_sane():
+    cl = phantom_centerlines(ACCURACY_CASES[0])
+    for f in cl.info["branches"]:
+        assert 20.0 < f["length_mm"] < 60.0
+        assert 0.0 <= f["tortuosity"] < 0.1  # the phantom's axes are gently curved
+        assert 0.0 <= f["max_bend_deg"] < 45.0
+        assert f["min_radius_mm"] <= f["mean_radius_mm"] <= f["max_radius_mm"]
+    by_name = {f["name"]: f for f in cl.info["branches"]}
+    assert by_name["CCA"]["mean_radius_mm"] > by_name["ICA"]["mean_radius_mm"] > by_name["ECA"]["mean_radius_mm"]
+
+
+def test_real_segmentation_of_a_phantom():
+    """Through the segment stage's own output, not the truth."""
+    from carotid.segment import segment
+
+    ph = phantom(*ACCURACY_CASES[2])
+    result = segment(ph.image)
+    cl = compute_centerlines(result.levelset, result.mask)
+    assert [b.name for b in cl.branches] == ["CCA", "ICA", "ECA"]
+    assert np.linalg.norm(cl.bifurcation - np.asarray(ph.info["bifurcation_mm"])) <= 1.5
+    assert abs(cl.info["stenosis"]["nascet"] - ph.info["stenosis"]["nascet"]) <= 0.05
+
+
+# ---------------------------------------------------------------------------------------------- I/O and CLI
+
+def test_vtp_round_trip(tmp_path):
+    cl = phantom_centerlines(ACCURACY_CASES[0])
+    vtp, geometry = write_centerlines(cl, tmp_path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["centerlines.vtp", "geometry.json"]
+    back = read_centerlines(tmp_path)
+    assert [b.name for b in back.branches] == [b.name for b in cl.branches]
+    for a, b in zip(cl.branches, back.branches):
+        assert np.allclose(a.points, b.points, atol=1e-5)
+        assert np.allclose(a.radii, b.radii, atol=1e-6)
+    assert np.allclose(back.bifurcation, cl.bifurcation)
+    assert read_centerlines(vtp).branch("ICA").points.shape == cl.branch("ICA").points.shape
+    doc = json.loads(geometry.read_text())
+    assert doc["branch_names"] == ["CCA", "ICA", "ECA"]
+    assert doc["stenosis"]["nascet"] == pytest.approx(cl.info["stenosis"]["nascet"])
+    import pyvista as pv
+
+    poly = pv.read(vtp)
+    assert poly.n_cells == 3 and "MaximumInscribedSphereRadius" in poly.point_data
+    assert list(poly.cell_data["BranchId"]) == [0, 1, 2]
+
+
+def test_read_centerlines_missing(tmp_path):
+    with pytest.raises(CarotidError, match="carotid centerlines"):
+        read_centerlines(tmp_path)
+
+
+def test_empty_mask_is_refused():
+    vol, _ = grid((20, 20, 20), (0.5, 0.5, 0.5))
+    with pytest.raises(CarotidError, match="empty"):
+        compute_centerlines(vol.with_array(np.full((20, 20, 20), 5.0, np.float32)))
+
+
+def test_two_separate_vessels_are_refused():
+    vol, xyz = grid((40, 30, 40), (0.5, 0.5, 0.5))
+    sdf = np.minimum(capsule_sdf(xyz, [5, 7, -5], [5, 7, 30], 2.5), capsule_sdf(xyz, [14, 7, -5], [14, 7, 30], 2.0))
+    with pytest.raises(CarotidError, match="fragmented"):
+        compute_centerlines(vol.with_array(sdf.reshape(40, 30, 40).astype(np.float32)))
+
+
+def test_blob_without_axis_is_refused():
+    vol, xyz = grid((30, 30, 30), (0.5, 0.5, 0.5))
+    sdf = np.linalg.norm(xyz - 7.5, axis=1) - 4.0
+    with pytest.raises(CarotidError, match="no vessel axis"):
+        compute_centerlines(vol.with_array(sdf.reshape(30, 30, 30).astype(np.float32)))
+
+
+def test_small_debris_is_ignored():
+    sdf, bif, _, _ = y_shape()
+    phi = sdf.array.copy()
+    phi[2:4, 2:4, 2:4] = -0.5  # a speck far from the vessels
+    cl = compute_centerlines(sdf.with_array(phi))
+    assert [b.name for b in cl.branches] == ["CCA", "ICA", "ECA"]
+    assert cl.info["lumen"]["components"] == 2
+
+
+def _parse(argv):
+    parser = argparse.ArgumentParser(prog="carotid")
+    register(parser.add_subparsers(dest="command", required=True))
+    return parser.parse_args(argv)
+
+
+def test_cli_needs_a_segmentation(tmp_path):
+    args = _parse(["centerlines", str(tmp_path)])
+    with pytest.raises(CarotidError, match="carotid segment"):
+        args.func(args)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_cli_writes_outputs_and_summary(tmp_path, capsys):
+    from carotid.segment.segmentation import Segmentation, write_segmentation
+
+    ph = phantom(*ACCURACY_CASES[1])
+    write_segmentation(Segmentation(ph.sdf, ph.mask, {}), tmp_path)
+    args = _parse(["centerlines", str(tmp_path)])
+    assert args.func(args) == 0
+    out = capsys.readouterr().out
+    assert "NASCET" in out and "ICA" in out and "ECA" in out
+    assert (tmp_path / "centerlines.vtp").exists() and (tmp_path / "geometry.json").exists()
+    assert read_centerlines(tmp_path).branch("ECA").length_mm > 20
+
+
+def test_cli_refuses_a_fragmented_segmentation(tmp_path):
+    from carotid.segment.segmentation import Segmentation, write_segmentation
+
+    vol, xyz = grid((40, 30, 40), (0.5, 0.5, 0.5))
+    sdf = np.minimum(capsule_sdf(xyz, [5, 7, -5], [5, 7, 30], 2.5), capsule_sdf(xyz, [14, 7, -5], [14, 7, 30], 2.5))
+    phi = vol.with_array(sdf.reshape(40, 30, 40).astype(np.float32))
+    write_segmentation(Segmentation(phi, phi.with_array((phi.array < 0).astype(np.uint8)), {}), tmp_path)
+    args = _parse(["centerlines", str(tmp_path)])
+    with pytest.raises(CarotidError, match="fragmented"):
+        args.func(args)
+    assert not (tmp_path / "centerlines.vtp").exists()
+
+
+def test_centerlines_model_is_kept():
+    cl = Centerlines([Branch("CCA", np.array([[0.0, 0, 0], [0, 0, 1.0]]), np.ones(2))], np.zeros(3))
+    assert cl.ends()[0][0] == "CCA"
