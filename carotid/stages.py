@@ -12,7 +12,6 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-import numpy as np
 
 from carotid.errors import CarotidError
 
@@ -218,23 +217,4 @@ def run_simulate(case_dir: Path, params: dict, inputs: list[Path]) -> None:
     from carotid.flow.simulate import simulate
 
     flow = FlowStageParameters(**params).validate().flow_parameters()
-    checkpoint = case_dir / "flow" / "checkpoint.npz"
-    resume = checkpoint.exists() and _checkpoint_matches(checkpoint, case_dir, flow)
-    simulate(case_dir / "mesh.vtu", case_dir, flow, resume=resume)
-
-
-def _checkpoint_matches(checkpoint: Path, case_dir: Path, flow) -> bool:
-    """Whether a flow checkpoint was made with these settings (else the run starts afresh)."""
-    from carotid.flow.output import load_checkpoint
-    from carotid.flow.waveform import carotid_waveform
-
-    try:
-        _, meta = load_checkpoint(checkpoint)
-    except (CarotidError, OSError, ValueError, KeyError):
-        return False
-    return meta.get("fingerprint") == flow.fingerprint(flow.waveform or carotid_waveform())
-
-
-def stage_array(values) -> np.ndarray:
-    """A config list as a float array (helper for tests and callers)."""
-    return np.asarray(values, float)
+    simulate(case_dir / "mesh.vtu", case_dir, flow, resume="auto")

@@ -1,9 +1,10 @@
 #!/bin/sh
 # System packages carotid needs beyond PyPI, on Debian/Ubuntu: an EGL/OpenGL stack (Mesa) for the
-# report's off-screen pictures, and Chromium for the test that opens the report in a headless browser.
+# report's off-screen pictures, the X/GLU libraries the gmsh wheel links against (core mesher), and
+# Chromium for the test that opens the report in a headless browser.
 # Installs only what is missing; elsewhere it says what to install and carries on.
 set -e
-packages="libegl1 libegl-mesa0 libgl1 libgl1-mesa-dri chromium"
+packages="libegl1 libegl-mesa0 libgl1 libgl1-mesa-dri libglu1-mesa libxcursor1 libxft2 libxinerama1 libgomp1 chromium"
 missing=""
 for p in $packages; do
     dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "ok installed" || missing="$missing $p"

@@ -99,7 +99,7 @@ def test_mass_split_is_imposed_every_step():
 def _params(**kw):
     from carotid.flow.simulate import FlowParameters
 
-    base = dict(cycles=0.004, output_every=10, checkpoint_every=20, n_harmonics=4)
+    base = dict(cycles=0.006, output_every=10, checkpoint_every=20, n_harmonics=4)
     base.update(kw)
     return FlowParameters(**base)
 

@@ -328,15 +328,17 @@ def test_command_line(tmp_path, capsys):
 
 @pytest.mark.skipif(not REAL_SURFACE.exists(), reason="shared real surface not available")
 def test_real_carotid_surface_meshes_with_ten_layers():
-    """fluid.stl (SPHinXsys) is closed with flat caps but has folded slivers: remeshed isotropically
-    first (what `carotid surface` does), then its flat caps are labelled and it is meshed."""
-    pymeshlab = pytest.importorskip("pymeshlab")
-    raw = pv.read(REAL_SURFACE).clean()
-    ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(np.asarray(raw.points, float), raw.regular_faces.astype(np.int32)))
-    ms.meshing_isotropic_explicit_remeshing(iterations=6, targetlen=pymeshlab.PureValue(0.5), featuredeg=40)
-    m = ms.current_mesh()
-    surface = label_flat_caps(pv.PolyData.from_regular_faces(m.vertex_matrix(), m.face_matrix()))
+    """fluid.stl (SPHinXsys) through carotid's own external-surface path (level set, centerlines,
+    clipped and remeshed surface), then meshed with 10 layers."""
+    if not REAL_SURFACE.exists():
+        pytest.skip("shared data not present")
+    from carotid.centerline import compute_centerlines
+    from carotid.surface.external import levelset_from_surface, load_external_surface
+    from carotid.surface.pipeline import build_surface
+
+    closed, _ = load_external_surface(REAL_SURFACE)
+    levelset = levelset_from_surface(closed, spacing=0.3)
+    surface, caps, _ = build_surface(levelset, compute_centerlines(levelset), target_edge_mm=0.5)
     assert sorted(np.unique(surface.cell_data[LABELS])) == [1, 2, 3, 4]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

@@ -15,11 +15,15 @@ import pytest
 from carotid.cli import main
 from carotid.config import Config
 from carotid.errors import CarotidError
-from carotid.io import read_image
 from carotid.phantom import make_phantom, write_phantom
 from carotid.pipeline import read_case, run
 
 SMALL = {"extent": (30.0, 30.0, 50.0)}  # a short field of view: a segmentation takes ~10 s
+
+
+# The whole chain at toy settings: a 0.8 mm surface, 2 wall layers, ~100 flow steps.
+TOY = {"surface": {"target_edge_mm": 0.8}, "mesh": {"layers": 2, "thickness_ratio": 0.15},
+       "simulate": {"cycles": 0.003, "output_every": 20, "checkpoint_every": 20}}
 
 
 @pytest.fixture(scope="module")
@@ -62,54 +66,101 @@ def test_bad_toml_is_one_clear_error(tmp_path, capsys):
 def test_run_skips_unchanged_stages_and_reruns_changed_ones(small_image, tmp_path):
     case = tmp_path / "case"
     lines = []
-    run(small_image, case, log=lines.append)
-    assert lines[0].startswith("segment: done") and lines[-1].startswith("report: done")
-    assert all(": done" in line or "not available yet" in line for line in lines)
+    run(small_image, case, Config(TOY), log=lines.append)
+    assert [line.split(":")[0] for line in lines] == ["segment", "centerlines", "surface", "mesh", "simulate", "report"]
+    assert all(": done" in line for line in lines)
     first = read_case(case)["stages"]["segment"]
     lines.clear()
-    run(small_image, case, log=lines.append)
-    assert lines[0] == "segment: unchanged, skipped" and lines[-1] == "report: unchanged, skipped"
+    run(small_image, case, Config(TOY), log=lines.append)
+    assert all(line.endswith(": unchanged, skipped") for line in lines) and len(lines) == 6
     assert read_case(case)["stages"]["segment"] == first
     lines.clear()
-    run(small_image, case, Config({"segment": {"alpha": 0.25}}), log=lines.append)
+    run(small_image, case, Config({**TOY, "segment": {"alpha": 0.25}}), log=lines.append)
     assert lines[0].startswith("segment: done") and read_case(case)["stages"]["segment"]["key"] != first["key"]
     report = json.loads((case / "segmentation" / "report.json").read_text())
     assert report["parameters"]["alpha"] == 0.25
 
 
+def _start_run(image, case, config_path):
+    return subprocess.Popen([sys.executable, "-m", "carotid", "run", str(image), "-o", str(case), "--config",
+                             str(config_path)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
+
+
+def _kill_when(proc, condition, timeout=300.0):
+    """SIGKILL the run's process group as soon as ``condition()`` holds."""
+    start = time.monotonic()
+    while not condition():
+        assert proc.poll() is None, "the run ended before the moment to kill it"
+        assert time.monotonic() - start < timeout
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+
+
+def _finished(case):
+    try:
+        return {name: s["finished"] for name, s in read_case(case)["stages"].items()}
+    except (CarotidError, FileNotFoundError, json.JSONDecodeError):
+        return {}
+
+
 def test_killed_run_resumes_to_the_same_result(small_image, tmp_path):
+    config_path = tmp_path / "toy.toml"
+    config_path.write_text(Config(TOY).to_toml())
     reference = tmp_path / "reference"
-    run(small_image, reference, log=lambda line: None)
+    run(small_image, reference, Config.from_toml(config_path), log=lambda line: None)
     case = tmp_path / "killed"
-    for delay in (1.0, 4.0):  # during start-up and imports, then inside the level-set evolution
-        proc = subprocess.Popen([sys.executable, "-m", "carotid", "run", str(small_image), "-o", str(case)],
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-        time.sleep(delay)
-        os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait()
-        assert not (case / "segmentation").exists() or (case / "case.json").exists()
+    moments = {  # name -> (condition on the case folder at which the run is killed, stage it interrupts)
+        "during segmentation": (lambda: (case / "segmentation").exists() or time.sleep(2.0) is None, "segment"),
+        "after the surface": (lambda: "surface" in _finished(case), "simulate"),
+        "mid-simulation": (lambda: (case / "flow" / "checkpoint.npz").exists() and time.sleep(1.0) is None,
+                           "simulate"),
+    }
+    for name, (condition, interrupted) in moments.items():
+        before = _finished(case)
+        _kill_when(_start_run(small_image, case, config_path), condition)
+        after = _finished(case)
+        assert {k: after[k] for k in before} == before, f"{name}: a finished stage was repeated"
+        assert interrupted not in after, f"{name}: the run was not interrupted in time"
+    before = _finished(case)
     lines = []
-    run(small_image, case, log=lines.append)
-    assert lines[0].startswith("segment: done")
-    for name in ("mask.nii.gz", "levelset.nii.gz"):
-        a = read_image(case / "segmentation" / name).array
-        b = read_image(reference / "segmentation" / name).array
-        assert np.array_equal(a, b), name
+    run(small_image, case, Config.from_toml(config_path), log=lines.append)
+    after = _finished(case)
+    assert {k: after[k] for k in before} == before, "a stage finished before the kills was repeated"
+    assert lines[-1].startswith("report: done")
+    for name in ("segmentation/mask.nii.gz", "segmentation/levelset.nii.gz", "surface.vtp", "mesh.vtu"):
+        assert (case / name).read_bytes() == (reference / name).read_bytes(), name
+    resumed, uninterrupted = np.load(case / "flow" / "checkpoint.npz"), np.load(reference / "flow" / "checkpoint.npz")
+    for field in ("u", "p", "t"):
+        scale = max(np.abs(uninterrupted[field]).max(), 1e-30)
+        assert np.abs(resumed[field] - uninterrupted[field]).max() <= 1e-10 * scale, field
     assert [p.name for p in case.iterdir() if p.name.startswith(".")] == []
 
 
 def test_batch_isolates_a_corrupt_case(small_image, tmp_path, capsys):
+    images = {"first": small_image}
+    for k, stenosis in enumerate((0.4, 0.5, 0.7)):
+        folder = write_phantom(make_phantom(stenosis=stenosis, noise=15.0, seed=6 + k, **SMALL), tmp_path / f"p{k}")
+        images[f"phantom{k}"] = folder / "image.nii.gz"
     corrupt = tmp_path / "corrupt.nii.gz"
     corrupt.write_bytes(b"\x1f\x8b not really gzip")
     manifest = tmp_path / "manifest.csv"
-    manifest.write_text(f"case_id,image\nfirst,{small_image}\nsecond,{small_image}\nbroken,{corrupt}\n")
+    manifest.write_text("case_id,image\n" + "".join(f"{name},{path}\n" for name, path in images.items())
+                        + f"broken,{corrupt}\n")
+    config = tmp_path / "toy.toml"
+    config.write_text(Config(TOY).to_toml())
     out = tmp_path / "cohort"
-    code = main(["batch", str(manifest), "-o", str(out), "--workers", "2"])
+    code = main(["batch", str(manifest), "-o", str(out), "--workers", "2", "--config", str(config)])
     captured = capsys.readouterr()
-    assert code == 3 and "1 of 3 cases failed" in captured.err
+    assert code == 3 and "1 of 5 cases failed" in captured.err
     rows = {row["case_id"]: row for row in csv.DictReader(open(out / "cohort.csv"))}
-    assert rows["first"]["status"] == rows["second"]["status"] == "ok"
-    assert float(rows["first"]["lumen_volume_mm3"]) > 0
+    for name in images:
+        row = rows[name]
+        assert row["status"] == "ok", row
+        assert float(row["lumen_volume_mm3"]) > 0 and int(row["mesh_tetrahedra"]) > 0
+        assert float(row["tawss_mean_pa"]) > 0 and 0 <= float(row["osi_area_fraction"]) <= 1
+        assert 0 < float(row["nascet"]) < 1  # a fraction, as in geometry.json
     assert rows["broken"]["status"] == "failed" and rows["broken"]["failed_stage"] == "segment"
     assert "cannot be read as an image" in rows["broken"]["reason"]
     assert not (out / "broken").exists()

@@ -85,12 +85,16 @@ class FlowParameters:
             raise CarotidError(f"the time-step safety factor must be in (0, 1] (got {self.safety})")
         return self
 
-    def fingerprint(self, waveform) -> str:
-        """Hash of everything that changes the solution (not ``cycles`` nor output settings)."""
+    def fingerprint(self, waveform, mesh: FlowMesh) -> str:
+        """Hash of everything that changes the solution: these settings (not ``cycles`` nor output settings),
+        the waveform and the mesh."""
         keys = {k: v for k, v in asdict(self).items()
                 if k not in ("cycles", "output_every", "checkpoint_every", "waveform", "extra")}
         keys["waveform"] = np.round(np.r_[waveform.period_s, waveform.times_s, waveform.flow_m3s], 15).tolist()
-        return hashlib.sha256(json.dumps(keys, sort_keys=True, default=str).encode()).hexdigest()[:16]
+        digest = hashlib.sha256(json.dumps(keys, sort_keys=True, default=str).encode())
+        for array in (mesh.points, mesh.tets, mesh.faces, mesh.labels):
+            digest.update(np.ascontiguousarray(array).tobytes())
+        return digest.hexdigest()[:16]
 
 
 def stabilisation_velocity(waveform, inlet_area: float) -> float:
@@ -134,7 +138,7 @@ def _diagnostics(solver: CBSSolver, info, rho: float) -> dict:
             "dp": p_in - float(np.average(p_out, weights=solver.outlet_areas))}
 
 
-def simulate(mesh, case_dir, params: FlowParameters | None = None, resume: bool = False,
+def simulate(mesh, case_dir, params: FlowParameters | None = None, resume: bool | str = False,
              progress: Callable[[dict], None] | None = None) -> dict:
     """Run the flow stage and write ``CASE_DIR/flow``.
 
@@ -145,8 +149,9 @@ def simulate(mesh, case_dir, params: FlowParameters | None = None, resume: bool 
     case_dir : path
         Case folder; outputs go to ``case_dir/flow``.
     params : FlowParameters
-    resume : bool
-        Continue from ``flow/checkpoint.npz``.
+    resume : bool or "auto"
+        Continue from ``flow/checkpoint.npz`` (an error when there is none or it was made with other settings
+        or another mesh); ``"auto"``: continue when a matching checkpoint exists, else start afresh.
     progress : callable, optional
         Called after every step with ``{"step", "time", "cycle", "cfl", "imbalance", "end"}``.
 
@@ -162,15 +167,17 @@ def simulate(mesh, case_dir, params: FlowParameters | None = None, resume: bool 
     waveform, solver, wall = _build(mesh, params)
     period = waveform.period_s
     t_end = params.cycles * period
-    fp = params.fingerprint(waveform)
+    fp = params.fingerprint(waveform, mesh)
     seconds = 0.0
+    if resume == "auto":
+        resume = _checkpoint_fingerprint(ckpt) == fp
     if resume:
         if not ckpt.is_file():
             raise CarotidError(f"no checkpoint to resume from in {flow_dir}: run without --resume")
         state, meta = load_checkpoint(ckpt)
         if meta["fingerprint"] != fp:
-            raise CarotidError("the checkpoint was made with other settings (dt, split, waveform, turbulence...): "
-                               "use the same options or run without --resume")
+            raise CarotidError("the checkpoint was made with other settings (dt, split, waveform, turbulence...) "
+                               "or another mesh: use the same options or run without --resume")
         solver.load_state(state)
         writer = FlowWriter(flow_dir, mesh, wall.nodes, wall.local_faces)
         writer.truncate(meta["records"])
@@ -207,6 +214,14 @@ def simulate(mesh, case_dir, params: FlowParameters | None = None, resume: bool 
     summary = _finish(flow_dir, mesh, solver, wall, writer, params, waveform, seconds)
     write_json(summary, flow_dir / "summary.json")
     return summary
+
+
+def _checkpoint_fingerprint(path: Path) -> str | None:
+    """The fingerprint a checkpoint was made with; None when there is no readable checkpoint."""
+    try:
+        return load_checkpoint(path)[1].get("fingerprint")
+    except (CarotidError, OSError, ValueError, KeyError):
+        return None
 
 
 def _output(writer: FlowWriter, solver: CBSSolver, wall: WallShear, params: FlowParameters, diag: dict) -> None:

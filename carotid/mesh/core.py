@@ -111,7 +111,11 @@ def mesh_core_tetgen(points: np.ndarray, triangles: np.ndarray, size: float, *, 
     tets : ndarray, shape (t, 4)
         Positively oriented tetrahedra.
     """
-    import tetgen
+    try:
+        import tetgen
+    except ImportError:
+        raise CarotidError("the TetGen core needs the tetgen package: pip install 'carotid[tetgen]' "
+                           "(or use --core gmsh)") from None
 
     switches = f"pYq{radius_edge:g}/{min_dihedral:g}a{regular_tet_volume(size):.6g}O2/7Q"
     try:

@@ -22,18 +22,23 @@ from carotid.io import Volume
 from carotid.surface.clip import planar_cap
 from carotid.surface.mesh import boundary_loops, from_polydata, largest_component, signed_volume, to_polydata
 from carotid.surface.project import TriangleProjector
-from carotid.surface.quality import manifold_report
+from carotid.surface.quality import manifold_report, self_intersections
 
 SUFFIXES = (".stl", ".vtp", ".vtk", ".obj", ".ply")
 METRES_EXTENT = 0.5  # a carotid bifurcation spans several cm: below 0.5 units it is in metres
 
 
 def _close_loops(points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
-    """Close every boundary loop with a cap in its best-fit plane; returns (points, faces, loops closed)."""
+    """Close every boundary loop with a cap in its best-fit plane; returns (points, faces, loops closed).
+
+    Raises CarotidError when a loop is not simple (pinched) or when a cap crosses the surface or another
+    cap (a badly non-planar or folded rim).
+    """
     loops = boundary_loops(faces)
     n_boundary = int(manifold_report(len(points), faces)["boundary_edges"])
     if sum(len(lp) for lp in loops) != n_boundary:
         raise CarotidError("the surface's open ends are not simple loops (pinched boundary): it cannot be closed")
+    n_faces = len(faces)
     for loop in loops:  # loop over open ends
         rim = points[loop]
         centred = rim - rim.mean(axis=0)
@@ -44,6 +49,10 @@ def _close_loops(points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.
         interior, cap = planar_cap(points, loop, normal)
         points = np.vstack([points, interior])
         faces = np.vstack([faces, cap])
+    crossing = self_intersections(points, faces, among=np.arange(len(faces)) >= n_faces)
+    if len(crossing):
+        raise CarotidError(f"{len(loops)} open end(s) cannot be closed by flat caps: a rim is badly non-planar or "
+                           "folds over itself, so its cap crosses the surface; cut the ends flat first")
     return points, faces, len(loops)
 
 
@@ -67,7 +76,8 @@ def load_external_surface(path: str | Path, scale: float | None = None) -> tuple
     Raises
     ------
     CarotidError
-        Unreadable file, no triangles, coordinates that look like metres, a non-manifold surface, or
+        Unreadable file, no triangles, coordinates that look like metres, a non-manifold surface, open ends
+        whose flat caps would cross the surface (badly non-planar or folded rims), or
         open ends that are not simple loops.
     """
     path = Path(path)

@@ -4,7 +4,9 @@ Each iteration: split edges longer than ``4/3 h`` at their midpoint, collapse ed
 ``4/5 h`` (never flipping a triangle, never creating a non-manifold configuration or an edge longer
 than ``4/3 h``), flip edges when that brings the valences of the four vertices involved towards 6,
 move every vertex towards the area-weighted centroid of its triangles in its tangent plane, and project
-it back onto the input surface.  ``h`` is a global length or a function of position, e.g. ``k r`` from the
+it back onto the input surface.  A last round of flips widens the smallest angles (an edge of a triangle
+with an angle below 30 degrees is flipped when that enlarges the smaller of the two triangles' smallest
+angles) without moving any vertex.  ``h`` is a global length or a function of position, e.g. ``k r`` from the
 centerline radius (``radius_size_field``).
 
 Caps and labels are preserved: a vertex is *wall*, *cap* (interior of a cap) or *rim* (on both).  Wall
@@ -35,6 +37,7 @@ from scipy.spatial import cKDTree
 from carotid.centerline.model import Centerlines
 from carotid.surface.mesh import WALL, compact, face_normals, from_polydata, to_polydata
 from carotid.surface.project import PolylineProjector, TriangleProjector
+from carotid.surface.quality import triangle_angles
 
 KIND_WALL, KIND_CAP, KIND_RIM = 0, 1, 2
 SPLIT_BATCHES, COLLAPSE_BATCHES, FLIP_BATCHES = 12, 8, 4
@@ -221,13 +224,34 @@ def _collapse_batch(m: _Mesh, h: np.ndarray, rng, rejected: np.ndarray) -> tuple
     return rejected, True
 
 
-def _flip_batch(m: _Mesh, rng) -> int:
-    """Flip a vertex-disjoint set of edges that bring valences towards 6; returns how many."""
-    a, b, c, d = m.a, m.b, m.c, m.d
-    val = m.valence
+def _valence_gain(m: _Mesh) -> np.ndarray:
+    """Decrease (ne,) of the summed distance of the four valences to 6 if each edge were flipped."""
+    a, b, c, d, val = m.a, m.b, m.c, m.d, m.valence
     before = np.abs(val[a] - 6) + np.abs(val[b] - 6) + np.abs(val[c] - 6) + np.abs(val[d] - 6)
     after = np.abs(val[a] - 7) + np.abs(val[b] - 7) + np.abs(val[c] - 5) + np.abs(val[d] - 5)
-    gain = before - after
+    return before - after
+
+
+def _angle_gain(m: _Mesh) -> np.ndarray:
+    """Increase (ne,) of the smallest angle (degrees) of the two triangles of each edge if it were flipped,
+    for the edges of triangles with an angle below 30 degrees (zero elsewhere)."""
+    old = triangle_angles(m.v, m.f).min(axis=1)
+    worst = np.minimum(old[m.f0], old[m.f1])
+    gain = np.zeros(len(m.a))
+    low = np.flatnonzero(worst < 30.0)
+    a, b, c, d = m.a[low], m.b[low], m.c[low], m.d[low]
+    new = np.minimum(triangle_angles(m.v, np.stack([a, d, c], 1)).min(axis=1),
+                     triangle_angles(m.v, np.stack([d, b, c], 1)).min(axis=1))
+    gain[low] = new - worst[low]
+    return gain
+
+
+def _flip_batch(m: _Mesh, rng, gain_of: Callable[[_Mesh], np.ndarray] = _valence_gain) -> int:
+    """Flip a vertex-disjoint set of edges with a positive ``gain_of`` (by default: that bring valences
+    towards 6); returns how many."""
+    a, b, c, d = m.a, m.b, m.c, m.d
+    val = m.valence
+    gain = gain_of(m)
     cand = (gain > 0) & ~m.feature & ~((m.kind[c] == KIND_RIM) & (m.kind[d] == KIND_RIM)) & (c != d)
     cand &= (val[a] > 3) & (val[b] > 3)
     idx = np.flatnonzero(cand)
@@ -374,5 +398,8 @@ def remesh(surface: pv.PolyData, target: SizeField, *, iterations: int = 10, see
                 break
         _relax(m)
         ref.project(m)
+    for _ in range(FLIP_BATCHES):  # a last clean-up: flips that widen the smallest angles (Delaunay-like)
+        if _flip_batch(m, rng, _angle_gain) == 0:
+            break
     return to_polydata(m.v, m.f, m.lab)
 
