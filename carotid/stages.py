@@ -133,6 +133,9 @@ class FlowStageParameters:
         Fraction of the flow leaving each outlet (CellEntityIds 3, 4, ...); empty: Murray's law.
     turbulence : str
         "none" or "sa" (Spalart-Allmaras).
+    viscous : str
+        "explicit" (the paper's CBS: the step is bounded by the thinnest wall layer) or "implicit"
+        (backward-Euler viscosity: the step is bounded by convection only).
     output_every : int
         Steps between outputs of the time series.
     checkpoint_every : int
@@ -148,6 +151,7 @@ class FlowStageParameters:
     waveform: str = ""
     split: list = field(default_factory=list)
     turbulence: str = "none"
+    viscous: str = "implicit"
     output_every: int = 50
     checkpoint_every: int = 500
     rho: float = 1060.0

@@ -1,10 +1,26 @@
 """Shared fixtures: phantoms are generated once per session (they take a few seconds each)."""
 
 import functools
+import os
+from pathlib import Path
 
 import pytest
 
 from carotid.phantom import make_phantom
+
+
+def _shared_file(relative: str) -> Path:
+    """A file of the project's shared data (``../shared/data`` beside the repository, ``/work/shared/data``,
+    or ``$CAROTID_SHARED_DATA``); the first candidate when none exists (tests then skip)."""
+    roots = [os.environ.get("CAROTID_SHARED_DATA"), Path(__file__).resolve().parents[2] / "shared/data",
+             "/work/shared/data"]
+    paths = [Path(root) / relative for root in roots if root]
+    return next((path for path in paths if path.exists()), paths[0])
+
+
+# The real carotid lumen surface (SPHinXsys, closed, flat caps, mm): see its PROVENANCE.txt.
+FLUID_STL = _shared_file("carotid-surface-sphinxsys/fluid.stl")
+needs_fluid_stl = pytest.mark.skipif(not FLUID_STL.exists(), reason=f"shared data not found: {FLUID_STL}")
 
 # Stenosis (area fraction), noise (HU) and random seed of the accuracy phantoms.
 ACCURACY_CASES = [(0.5, 30.0, 2), (0.6, 10.0, 4), (0.7, 20.0, 1), (0.75, 25.0, 7), (0.8, 30.0, 11)]

@@ -5,12 +5,13 @@ import argparse
 import itertools
 import json
 import warnings
-from pathlib import Path
 
 import meshio
 import numpy as np
 import pytest
 import pyvista as pv
+
+from conftest import FLUID_STL, needs_fluid_stl
 
 from carotid.errors import CarotidError
 from carotid.mesh import build_mesh, cap_open_ends, check_surface, label_flat_caps, write_mesh
@@ -23,7 +24,6 @@ from carotid.mesh.quality import dihedral_angles, min_dihedral
 from carotid.mesh.smooth import lloyd_smooth
 from carotid.mesh.testing import labelled_bifurcation, labelled_tube
 
-REAL_SURFACE = Path(__file__).resolve().parents[2] / "shared/data/carotid-surface-sphinxsys/fluid.stl"
 R, T, N, F = 3.0, 0.6, 10, 1.2  # tube radius, layer thickness (mm), sub-layers, growth ratio
 
 
@@ -326,17 +326,15 @@ def test_command_line(tmp_path, capsys):
         parser.parse_args(["mesh", str(case), "--thickness", "0.3", "--thickness-ratio", "0.2"])
 
 
-@pytest.mark.skipif(not REAL_SURFACE.exists(), reason="shared real surface not available")
+@needs_fluid_stl
 def test_real_carotid_surface_meshes_with_ten_layers():
     """fluid.stl (SPHinXsys) through carotid's own external-surface path (level set, centerlines,
     clipped and remeshed surface), then meshed with 10 layers."""
-    if not REAL_SURFACE.exists():
-        pytest.skip("shared data not present")
     from carotid.centerline import compute_centerlines
     from carotid.surface.external import levelset_from_surface, load_external_surface
     from carotid.surface.pipeline import build_surface
 
-    closed, _ = load_external_surface(REAL_SURFACE)
+    closed, _ = load_external_surface(FLUID_STL)
     levelset = levelset_from_surface(closed, spacing=0.3)
     surface, caps, _ = build_surface(levelset, compute_centerlines(levelset), target_edge_mm=0.5)
     assert sorted(np.unique(surface.cell_data[LABELS])) == [1, 2, 3, 4]

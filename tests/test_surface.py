@@ -1,12 +1,11 @@
 """The lumen surface: accuracy against the phantoms' true wall, clipping, smoothing, remeshing, external input."""
 
 import argparse
-from pathlib import Path
 
 import numpy as np
 import pytest
 import pyvista as pv
-from conftest import ACCURACY_CASES, phantom
+from conftest import ACCURACY_CASES, FLUID_STL, needs_fluid_stl, phantom
 from scipy import ndimage
 
 from carotid.centerline.model import Branch, Centerlines
@@ -20,9 +19,6 @@ from carotid.surface.mesh import from_polydata, signed_volume, to_polydata
 from carotid.surface.quality import surface_quality
 from carotid.surface.remesh import remesh
 from carotid.surface.smooth import laplacian_smooth, taubin_smooth
-
-FLUID_STL = Path("/work/shared/data/carotid-surface-sphinxsys/fluid.stl")
-
 
 def true_centerlines(ph) -> Centerlines:
     """The phantom's true axes, cut to the image (they run past its border)."""
@@ -136,6 +132,7 @@ def test_laplacian_shrinks_where_taubin_does_not():
     assert vl / v0 < 0.95
 
 
+@needs_fluid_stl
 def test_external_surface_gives_labelled_remeshed_surface(tmp_path):
     pytest.importorskip("carotid.centerline.extract")
     parser = argparse.ArgumentParser()
@@ -155,6 +152,7 @@ def test_external_surface_gives_labelled_remeshed_surface(tmp_path):
     assert q["min_angle_deg"]["fraction_ge_30"] >= 0.95 and q["valence"]["fraction_6"] >= 0.70
 
 
+@needs_fluid_stl
 def test_external_open_surface_is_closed_and_signed(tmp_path):
     closed, open_ends = load_external_surface(FLUID_STL)
     assert open_ends == 0
@@ -205,6 +203,7 @@ def test_open_ends_that_cannot_be_closed_are_refused(tmp_path, end, closable):
             load_external_surface(tmp_path / "tube.vtp")
 
 
+@needs_fluid_stl
 def test_bad_external_surfaces(tmp_path):
     closed, _ = load_external_surface(FLUID_STL)
     metres = closed.copy()

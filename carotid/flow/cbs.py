@@ -26,9 +26,25 @@ stabilisation uses each element's own local time step ``tau_e = 1 / (U/h_e + 2 n
 time step, U the inlet velocity scale), and the extra ``(tau_e - dt)`` part is made consistent with the
 lumped projection ``P(grad p^n)`` of the previous pressure gradient: the discrete continuity equation
 then reads ``int grad N . u^{n+1} - int_Gamma N g.n = sum_e tau_e int grad N . (grad p^{n+1} - P grad p^n)``
-(up to the dt-small part at velocity-Dirichlet nodes, where the correction is not applied), which
+(the velocity-Dirichlet nodes, where the correction is not applied, get their ``dt P grad p^n`` added back
+to the right-hand side so that this holds there too), which
 vanishes for a linear pressure: an orthogonal-projection stabilisation in the sense of Codina (2000),
 and the discrete fully developed (Poiseuille) profile of the section is an exact steady state.
+
+Implicit viscosity (``viscous="implicit"``, not in the paper; the default of :func:`carotid.flow.simulate`).
+With explicit viscosity the global step is bounded by ``h^2 / (2 nu)`` of the thinnest wall layer: about
+1e-6 s on a patient mesh with a 0.03 mm first layer, a million steps per cardiac cycle.  The implicit
+option treats the molecular viscous term of step 1 by backward Euler::
+
+       (M / dt + nu K) dU* = -C(u) u - nu_e K u - (dt/2) S(u) u + nu K (dt M^-1 P grad p^n)
+
+(``nu_e`` includes the turbulent viscosity, which stays explicit; the last, lagged term makes a steady
+state independent of dt, see :meth:`CBSSolver._implicit_momentum`), so the step is bounded by the
+convective limit (and the explicit turbulent diffusion) only.  Where the step then exceeds ``tau_e`` the
+pressure stabilisation uses ``max(tau_e, dt)`` (:meth:`CBSSolver._pressure_system`).  The three velocity
+components share one symmetric positive definite matrix; its solver (LU or AMG, as for the pressure) and
+the pressure system are rebuilt only when the step moves to another level of a quarter-octave grid
+(``dt = 2^(k/4)`` s, rounded down), so an adaptive step costs a set-up a few times per cycle.
 
 Boundary conditions: rigid no-slip walls (label 1); inlet (label 2) velocity = the inlet profile's axial
 speed times the inward normal; outlets (labels 3, ...) are traction-free (Laplacian-form viscous term)
@@ -53,6 +69,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
+import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from carotid.errors import CarotidError
@@ -136,6 +153,34 @@ class PressureSolver:
 
 
 @dataclass
+class PressureSystem:
+    """The pressure equation for one set of stabilisation times (see :meth:`CBSSolver._pressure_system`).
+
+    Attributes
+    ----------
+    tau : ndarray, shape (m,)
+        Stabilisation time per element, s.
+    k_out : sparse matrix, shape (outlet nodes, n)
+        Outlet rows of ``K_tau``.
+    solver : PressureSolver
+        For the free rows and columns of ``K_tau``.
+    phi : ndarray, shape (outlets, n)
+        ``K_tau``-harmonic liftings of unit outlet pressures.
+    s : ndarray, shape (outlets, n, 3)
+        Velocity correction per unit outlet pressure, before the dt factor, 1/m.
+    flux_response : ndarray, shape (outlets, outlets)
+        Consistent outlet fluxes per unit outlet pressure.
+    """
+
+    tau: np.ndarray
+    k_out: object
+    solver: PressureSolver
+    phi: np.ndarray
+    s: np.ndarray
+    flux_response: np.ndarray
+
+
+@dataclass
 class StepInfo:
     """Diagnostics of one time step.
 
@@ -194,15 +239,23 @@ class CBSSolver:
     turbulence : object, optional
         A :class:`carotid.flow.turbulence.SpalartAllmaras`; None for laminar flow.
     pressure : {"auto", "amg", "lu", "jacobi"}
-        See :class:`PressureSolver`.
+        See :class:`PressureSolver` (also used for the implicit viscous step).
     pressure_rtol : float
+    viscous : {"explicit", "implicit"}
+        Molecular viscous term of the momentum step: explicit (the paper's CBS) or backward Euler (module
+        docstring).
     """
+
+    VISCOUS = ("explicit", "implicit")
 
     def __init__(self, mesh: FlowMesh, inlet_speed: Callable[[float], np.ndarray], nu: float, split=None,
                  dt: float | None = None, safety: float = 0.5, velocity_scale: float | None = None,
-                 turbulence=None, pressure: str = "auto", pressure_rtol: float = 1e-8):
+                 turbulence=None, pressure: str = "auto", pressure_rtol: float = 1e-8, viscous: str = "explicit"):
         if dt is not None and not dt > 0:
             raise CarotidError(f"the time step must be positive (got {dt})")
+        if viscous not in self.VISCOUS:
+            raise CarotidError(f"the viscous term must be 'explicit' or 'implicit' (got {viscous!r})")
+        self.viscous, self._pressure_method, self._rtol = viscous, pressure, pressure_rtol
         self.mesh, self.inlet_speed, self.nu = mesh, inlet_speed, float(nu)
         self.fixed_dt, self.safety, self.turbulence = dt, float(safety), turbulence
         n = mesh.n_points
@@ -214,12 +267,12 @@ class CBSSolver:
         self._setup_boundaries()
         if velocity_scale is None:
             velocity_scale = 2.0 * float(np.abs(inlet_speed(0.0)).mean())
+        self.velocity_scale = float(velocity_scale)
         self.tau = 1.0 / (velocity_scale / self.h + 2.0 * self.nu / self.h**2)
-        k = asm.stiffness_matrix(self.volumes * self.tau, self.grads, mesh.tets, n)
-        self._k_fd = k[self.free][:, self.p_dirichlet]
-        self._k_out = k[self.p_dirichlet]  # outlet rows of the pressure matrix: the consistent outlet fluxes
-        self.pressure = PressureSolver(k[self.free][:, self.free], pressure, pressure_rtol)
-        self._setup_outlet_response()
+        self._systems: dict[float | None, PressureSystem] = {}
+        self.system = self._pressure_system(None)
+        if viscous == "implicit":
+            self._setup_implicit_viscosity()
         self._resid = np.zeros((n, 3))
         self._div = np.zeros(n)
         self._proj = np.zeros(n)
@@ -266,22 +319,99 @@ class CBSSolver:
         area = area[:, self.p_dirichlet]
         return area / area.sum(axis=0)[None]
 
-    def _setup_outlet_response(self) -> None:
-        """Liftings ``phi_j`` and the per-unit-pressure velocity corrections ``s_j`` (before the dt factor)."""
+    def _pressure_system(self, dt: float | None) -> PressureSystem:
+        """The pressure system for the stabilisation times ``max(tau_e, dt)`` (``dt`` None: ``tau_e``).
+
+        Explicit steps always use ``tau_e``.  With implicit viscosity the step can exceed ``tau_e`` in the
+        wall layers, and the lagged part ``dt D M^-1 G (p^n - p^{n+1})`` of the continuity equation (module
+        docstring) would then grow from step to step; ``max(tau_e, dt)`` keeps it a damping.  One system per
+        step level; the three most recent are kept.
+        """
+        system = self._systems.pop(dt, None)
+        if system is None:
+            system = self._build_pressure_system(self.tau if dt is None else np.maximum(self.tau, dt))
+        self._systems[dt] = system
+        while len(self._systems) > 3:
+            del self._systems[next(iter(self._systems))]
+        return system
+
+    def _build_pressure_system(self, tau: np.ndarray) -> PressureSystem:
+        """Matrix ``K_tau``, its solver, the outlet liftings ``phi_j`` and velocity corrections ``s_j``."""
         n, m = self.mesh.n_points, len(self.outlets)
-        self.phi = np.zeros((m, n))
-        self.s = np.zeros((m, n, 3))
+        k = asm.stiffness_matrix(self.volumes * tau, self.grads, self.mesh.tets, n)
+        k_fd = k[self.free][:, self.p_dirichlet]
+        k_out = k[self.p_dirichlet]  # outlet rows of the pressure matrix: the consistent outlet fluxes
+        solver = PressureSolver(k[self.free][:, self.free], self._pressure_method, self._rtol)
+        phi = np.zeros((m, n))
+        s = np.zeros((m, n, 3))
         for j in range(m):
             pd = (self.p_owner == j).astype(float)
-            self.phi[j, self.p_dirichlet] = pd
+            phi[j, self.p_dirichlet] = pd
             if m > 1:
-                self.phi[j, self.free] = self.pressure.solve(-(self._k_fd @ pd))
+                phi[j, self.free] = solver.solve(-(k_fd @ pd))
             grad = np.zeros((n, 3))
-            asm.lumped_gradient(self.mesh.tets, self.grads, self.volumes, self.phi[j], grad)
-            self.s[j] = -grad / self.mass[:, None]
-            self.s[j, self.u_dirichlet] = 0.0
+            asm.lumped_gradient(self.mesh.tets, self.grads, self.volumes, phi[j], grad)
+            s[j] = -grad / self.mass[:, None]
+            s[j, self.u_dirichlet] = 0.0
         # consistent outlet flux per unit outlet pressure: -sum_i share[i] (K_tau phi_j)_i, [outlet i, lifting j]
-        self.flux_response = -self.out_share @ np.column_stack([self._k_out @ self.phi[j] for j in range(m)])
+        flux_response = -self.out_share @ np.column_stack([k_out @ phi[j] for j in range(m)])
+        return PressureSystem(tau, k_out, solver, phi, s, flux_response)
+
+    @property
+    def pressure(self) -> PressureSolver:
+        """The current pressure solver."""
+        return self.system.solver
+
+    @property
+    def flux_response(self) -> np.ndarray:
+        """Consistent outlet flux per unit outlet pressure, m^3/s per (m^2/s^2), shape (outlets, outlets)."""
+        return self.system.flux_response
+
+    def _setup_implicit_viscosity(self) -> None:
+        """The molecular viscous matrix split into free/Dirichlet velocity columns, and the h scale below
+        which no convective limit is sought (a fluid at rest has none)."""
+        k = asm.stiffness_matrix(self.volumes * self.nu, self.grads, self.mesh.tets, self.mesh.n_points)
+        self._u_free = np.flatnonzero(~self.u_dirichlet)
+        self._kv_ff = k[self._u_free][:, self._u_free].tocsr()
+        self._kv_fd = k[self._u_free][:, self.u_dirichlet].tocsr()
+        self._viscous_solvers: dict[float, PressureSolver] = {}  # by dt, the few most recent
+        self._du_free = np.zeros((len(self._u_free), 3))
+
+    @staticmethod
+    def _dt_level(dt: float) -> float:
+        """``dt`` rounded down to the quarter-octave grid ``2^(k/4)`` s."""
+        return float(2.0 ** (np.floor(4.0 * np.log2(dt) + 1e-9) / 4.0))
+
+    def _viscous_step(self, dt: float) -> PressureSolver:
+        """The solver of ``(M/dt + nu K)`` on the free velocity nodes for this ``dt`` (the three most recent
+        are kept: a step shortened to hit an output time must not evict the running level)."""
+        solver = self._viscous_solvers.pop(dt, None)
+        if solver is None:
+            solver = PressureSolver(self._kv_ff + sp.diags(self.mass[self._u_free] / dt), self._pressure_method,
+                                    self._rtol)
+        self._viscous_solvers[dt] = solver  # most recent last
+        while len(self._viscous_solvers) > 3:
+            del self._viscous_solvers[next(iter(self._viscous_solvers))]
+        return solver
+
+    def _implicit_momentum(self, dt: float, t1: float) -> np.ndarray:
+        """``u*`` of step 1 with backward-Euler molecular viscosity (Dirichlet values at ``t1`` included).
+
+        The right-hand side carries ``nu K (dt M^-1 P grad p^n)`` as well: the pressure correction of step 3
+        is not viscous-implicit, and without this lagged term a steady state would satisfy the momentum
+        equation only up to ``nu K dt M^-1 grad p`` (an O(dt) error: +1.4 % mean WSS in a Poiseuille pipe).
+        Needs ``self._gp``, the lumped gradient of ``p^n``.
+        """
+        ustar = self.u.copy()
+        self._apply_velocity_bc(ustar, t1)
+        d, free = self.u_dirichlet, self._u_free
+        rhs = (self._resid[free] - self._kv_fd @ (ustar[d] - self.u[d])
+               + self._kv_ff @ ((dt / self.mass[free])[:, None] * self._gp[free]))
+        solver = self._viscous_step(dt)
+        for c in range(3):
+            self._du_free[:, c] = solver.solve(rhs[:, c], x0=self._du_free[:, c])
+        ustar[self._u_free] += self._du_free
+        return ustar
 
     def _flux(self, u: np.ndarray, j: int) -> float:
         nodes, w = self.out_flux[j]
@@ -316,6 +446,8 @@ class CBSSolver:
         self.p = np.zeros(n)
         self._p0_free = np.zeros(len(self.free))
         self.nut_hat = None if self.turbulence is None else self.turbulence.initial(n)
+        if self.viscous == "implicit":
+            self._du_free[:] = 0.0
         self._apply_velocity_bc(self.u, self.t)
         if self.turbulence is not None:
             self.turbulence.apply_bc(self.nut_hat)
@@ -325,6 +457,8 @@ class CBSSolver:
         st = {"u": self.u, "p": self.p, "p0_free": self._p0_free, "t": self.t, "step": self.step_count}
         if self.nut_hat is not None:
             st["nut_hat"] = self.nut_hat
+        if self.viscous == "implicit":
+            st["du_free"] = self._du_free
         return st
 
     def load_state(self, st: dict) -> None:
@@ -337,6 +471,8 @@ class CBSSolver:
         self.t, self.step_count = float(st["t"]), int(st["step"])
         if self.turbulence is not None:
             self.nut_hat = np.array(st["nut_hat"], dtype=float)
+        if self.viscous == "implicit":
+            self._du_free = np.array(st["du_free"], dtype=float)
 
     # ------------------------------------------------------------------ stepping
     def _apply_velocity_bc(self, u: np.ndarray, t: float) -> None:
@@ -351,14 +487,26 @@ class CBSSolver:
         return self.nu + self.turbulence.nu_t(self.nut_hat)[self.mesh.tets].mean(axis=1)
 
     def time_step(self, nu_e: np.ndarray) -> tuple[float, float]:
-        """``(dt, CFL)`` for the current velocity: adaptive or fixed, and ``max |u_e| dt / h_e``."""
+        """``(dt, CFL)`` for the current velocity: adaptive or fixed, and ``max |u_e| dt / h_e``.
+
+        The adaptive step is ``safety / max_e(|u_e|/h_e + 2 nu_e/h_e^2)`` with the explicit part of the
+        viscosity; with implicit viscosity that is the turbulent part only, and the rate is at least
+        ``velocity_scale / median(h_e)`` (a step for a fluid still at rest), then rounded down to its level.
+        """
         asm.element_speed(self.mesh.tets, self.u, self._speed)
         nu_dt = nu_e if self.turbulence is None else np.maximum(nu_e, self.turbulence.diffusivity_bound(
             self.nut_hat, self.mesh.tets))
+        if self.viscous == "implicit":
+            nu_dt = nu_dt - self.nu
         if self.fixed_dt is not None:
             dt = self.fixed_dt
         else:
-            dt = self.safety / float(np.max(self._speed / self.h + 2.0 * nu_dt / self.h**2))
+            rate = float(np.max(self._speed / self.h + 2.0 * nu_dt / self.h**2))
+            if self.viscous == "implicit":
+                rate = max(rate, self.velocity_scale / float(np.median(self.h)))
+            dt = self.safety / rate
+            if self.viscous == "implicit":
+                dt = self._dt_level(dt)
         return dt, float(np.max(self._speed / self.h) * dt)
 
     def step(self, max_dt: float | None = None) -> StepInfo:
@@ -371,33 +519,43 @@ class CBSSolver:
         t1 = self.t + dt
         # 1. intermediate momentum
         asm.momentum_residual(tets, self.grads, self.volumes, self.u, nu_e, 0.5 * dt, self._resid)
-        ustar = self.u + (dt / self.mass)[:, None] * self._resid
-        self._apply_velocity_bc(ustar, t1)
+        asm.lumped_gradient(tets, self.grads, self.volumes, self.p, self._gp)
+        if self.viscous == "implicit":
+            ustar = self._implicit_momentum(dt, t1)
+        else:
+            ustar = self.u + (dt / self.mass)[:, None] * self._resid
+            self._apply_velocity_bc(ustar, t1)
         # 2. pressure with zero outlet pressure
         asm.weak_divergence(tets, self.grads, self.volumes, ustar, self._div)
         self._div[self._in_nodes] -= self._inlet_nodal_flux(ustar)
-        asm.lumped_gradient(tets, self.grads, self.volumes, self.p, self._gp)
-        asm.weak_divergence(tets, self.grads, self.volumes * (self.tau - dt), self._gp / self.mass[:, None],
-                            self._proj)
+        if self.viscous == "implicit":
+            self.system = self._pressure_system(dt)
+        system = self.system
+        projected = self._gp / self.mass[:, None]
+        asm.weak_divergence(tets, self.grads, self.volumes * (system.tau - dt), projected, self._proj)
         rhs = self._div + self._proj
-        self._p0_free = self.pressure.solve(rhs[self.free], x0=self._p0_free)
+        # the correction skips velocity-Dirichlet nodes: put their dt P(grad p^n) back into the balance
+        projected[~self.u_dirichlet] = 0.0
+        asm.weak_divergence(tets, self.grads, self.volumes * dt, projected, self._proj)
+        rhs += self._proj
+        self._p0_free = system.solver.solve(rhs[self.free], x0=self._p0_free)
         p = np.zeros(mesh.n_points)
         p[self.free] = self._p0_free
         # consistent outlet fluxes: the residual of the discrete continuity equation at the outlet nodes
-        q0 = self.out_share @ (rhs[self.p_dirichlet] - self._k_out @ p)
+        q0 = self.out_share @ (rhs[self.p_dirichlet] - system.k_out @ p)
         # 3. correction, then outlet pressures that impose the split
         asm.lumped_gradient(tets, self.grads, self.volumes, p, self._gp)
         u = ustar - (dt / self.mass)[:, None] * self._gp
         u[self.u_dirichlet] = ustar[self.u_dirichlet]
         c = self._outlet_pressures(q0)
-        u += dt * np.tensordot(c, self.s, axes=1)
-        p += c @ self.phi
+        u += dt * np.tensordot(c, system.s, axes=1)
+        p += c @ system.phi
         if self.turbulence is not None:
             self.nut_hat = self.turbulence.step(self.nut_hat, u, dt, nu_e)
         self.u, self.p, self.t = u, p, t1
         self.step_count += 1
-        return StepInfo(dt, cfl, self.inflow(u), q0 + self.flux_response @ c, self.outflows(u),
-                        self.pressure.iterations)
+        return StepInfo(dt, cfl, self.inflow(u), q0 + system.flux_response @ c, self.outflows(u),
+                        system.solver.iterations)
 
     def _outlet_pressures(self, q0: np.ndarray) -> np.ndarray:
         """Outlet pressures c (outlets,) for which outlets 0..N-2 carry ``split`` of the total consistent outflow

@@ -33,7 +33,7 @@ def cmd_simulate(args) -> int:
 
         waveform = read_waveform_csv(args.waveform)
     params = FlowParameters(cycles=args.cycles, dt=args.dt, waveform=waveform, split=_split(args.split),
-                            turbulence=args.turbulence, output_every=args.output_every,
+                            turbulence=args.turbulence, viscous=args.viscous, output_every=args.output_every,
                             checkpoint_every=args.checkpoint_every)
     bar = tqdm(total=1.0, unit="cycle", file=sys.stderr, disable=None, dynamic_ncols=True,
                bar_format="{l_bar}{bar}| {postfix}")
@@ -73,6 +73,8 @@ def register(subparsers) -> None:
     p.add_argument("--split", nargs="+", metavar="RATIO",
                    help="outflow fraction per outlet in label order, e.g. 0.65:0.35 (default: Murray's law)")
     p.add_argument("--turbulence", choices=("none", "sa"), default="none", help="Spalart-Allmaras or none")
+    p.add_argument("--viscous", choices=("explicit", "implicit"), default="implicit",
+                   help="viscous term: explicit (the paper's CBS) or implicit (larger steps on thin wall layers)")
     p.add_argument("--output-every", type=int, default=50, metavar="K", help="steps between outputs (50)")
     p.add_argument("--checkpoint-every", type=int, default=500, metavar="M", help="steps between checkpoints")
     p.add_argument("--resume", action="store_true", help="continue from CASE_DIR/flow/checkpoint.npz")

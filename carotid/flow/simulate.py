@@ -47,6 +47,9 @@ class FlowParameters:
     split : sequence of float or None
         Flow fraction per outlet (ascending label: 3, 4, ...); None: Murray's law.
     turbulence : {"none", "sa"}
+    viscous : {"explicit", "implicit"}
+        Molecular viscous term of the momentum step: explicit (the paper's CBS; step bounded by the thinnest
+        wall layer) or backward Euler (step bounded by convection); see :mod:`carotid.flow.cbs`.
     output_every, checkpoint_every : int
         Steps between outputs and between checkpoints.
     rho, mu : float
@@ -64,6 +67,7 @@ class FlowParameters:
     n_harmonics: int = 10
     split: tuple | None = None
     turbulence: str = "none"
+    viscous: str = "implicit"
     output_every: int = 50
     checkpoint_every: int = 500
     rho: float = 1060.0
@@ -79,6 +83,8 @@ class FlowParameters:
             raise CarotidError(f"--dt must be positive (got {self.dt})")
         if self.turbulence not in ("none", "sa"):
             raise CarotidError(f"--turbulence must be 'sa' or 'none' (got {self.turbulence!r})")
+        if self.viscous not in CBSSolver.VISCOUS:
+            raise CarotidError(f"--viscous must be 'explicit' or 'implicit' (got {self.viscous!r})")
         if self.output_every < 1 or self.checkpoint_every < 1:
             raise CarotidError("--output-every and the checkpoint interval must be at least 1 step")
         if not (0 < self.safety <= 1):
@@ -120,7 +126,7 @@ def _build(mesh: FlowMesh, params: FlowParameters):
     turbulence = SpalartAllmaras(mesh, nu) if params.turbulence == "sa" else None
     solver = CBSSolver(mesh, profile.velocity, nu, split=params.split, dt=params.dt, safety=params.safety,
                        velocity_scale=stabilisation_velocity(waveform, mesh.face_area(INLET)),
-                       turbulence=turbulence, pressure=params.pressure)
+                       turbulence=turbulence, pressure=params.pressure, viscous=params.viscous)
     wall = WallShear(mesh, solver.volumes, distance=None if turbulence is None else turbulence.d)
     return waveform, solver, wall
 

@@ -191,7 +191,7 @@ def _mid_wall(mesh: FlowMesh, wall, spec: TubeSpec) -> np.ndarray:
 
 
 def poiseuille(spec: TubeSpec = POISEUILLE, q: float = 6e-6, max_steps: int = 6000, tol: float = 1e-3,
-               split_outlet: bool = False, split=None) -> dict:
+               split_outlet: bool = False, split=None, viscous: str = "explicit") -> dict:
     """Steady Poiseuille flow in a tube; errors of centreline velocity and WSS (mid-length third).
 
     The run starts from the inlet profile carried along the tube and stops when the relative velocity
@@ -213,7 +213,7 @@ def poiseuille(spec: TubeSpec = POISEUILLE, q: float = 6e-6, max_steps: int = 60
     r = spec.radius * 1e-3
     nodes, pts, tris = mesh.face_patch(2)
     profile = inlet_profile(pts, tris, mesh.face_normal(2), steady_waveform(q), NU, 0)
-    solver = CBSSolver(mesh, profile.velocity, NU, split=split, safety=0.8)
+    solver = CBSSolver(mesh, profile.velocity, NU, split=split, safety=0.8, viscous=viscous)
     solver.reset(developed_start(mesh, profile))
     residual = np.inf
     for _ in range(max_steps):
@@ -240,7 +240,8 @@ def poiseuille(spec: TubeSpec = POISEUILLE, q: float = 6e-6, max_steps: int = 60
             "wss_max_error": float(np.abs(tau / tau_exact - 1).max())}
 
 
-def womersley(spec: TubeSpec | None = None, cycles: float = 1.0, samples: int = 24, n_harmonics: int = 10) -> dict:
+def womersley(spec: TubeSpec | None = None, cycles: float = 1.0, samples: int = 24, n_harmonics: int = 10,
+              viscous: str = "explicit") -> dict:
     """The carotid waveform in a straight tube with the generalised Womersley inlet profile.
 
     The run starts from the inlet profile at t = 0 carried along the tube (zero pressure: the discrete
@@ -263,7 +264,7 @@ def womersley(spec: TubeSpec | None = None, cycles: float = 1.0, samples: int = 
     nodes, pts, tris = mesh.face_patch(2)
     profile = inlet_profile(pts, tris, mesh.face_normal(2), wave, NU, n_harmonics)
     solver = CBSSolver(mesh, profile.velocity, NU, safety=0.8,
-                       velocity_scale=stabilisation_velocity(wave, mesh.face_area(2)))
+                       velocity_scale=stabilisation_velocity(wave, mesh.face_area(2)), viscous=viscous)
     solver.reset(developed_start(mesh, profile))
     wall = WallShear(mesh, solver.volumes)
     mid = _mid_wall(mesh, wall, spec)
@@ -303,28 +304,35 @@ def run_verification(quick: bool = False, out=None) -> list[dict]:
         print(f"[{'PASS' if passed else 'FAIL'}] {name}: {text}", file=out, flush=True)
 
     start = time.perf_counter()
-    runs = [poiseuille(POISEUILLE.refined(k)) for k in ((1, 2) if quick else (1, 2, 3))]
+    for viscous in ("explicit", "implicit"):
+        _verify_scheme(viscous, quick, report)
+    print(f"verification took {time.perf_counter() - start:.0f} s", file=out)
+    return results
+
+
+def _verify_scheme(viscous: str, quick: bool, report) -> None:
+    """The Poiseuille, mass and Womersley cases with one treatment of the viscous term (see run_verification)."""
+    tag = "" if viscous == "explicit" else " [implicit viscosity]"
+    runs = [poiseuille(POISEUILLE.refined(k), viscous=viscous) for k in ((1, 2) if quick else (1, 2, 3))]
     p = runs[1]
-    report("Poiseuille", abs(p["centreline_error"]) <= 0.01 and abs(p["wss_mean_error"]) <= 0.01
+    report(f"Poiseuille{tag}", abs(p["centreline_error"]) <= 0.01 and abs(p["wss_mean_error"]) <= 0.01
            and p["wss_max_error"] <= 0.03,
            f"centreline {100 * p['centreline_error']:+.2f}% (<=1%), WSS mean {100 * p['wss_mean_error']:+.2f}% "
            f"(<=1%), max {100 * p['wss_max_error']:.2f}% (<=3%), {p['tetrahedra']} tets, {p['steps']} steps", p)
     orders = {key: _order(runs, key) for key in ("wss_mean_error", "wss_max_error", "centreline_error")}
-    report("Poiseuille convergence", min(orders["wss_mean_error"]) > 1.0,
+    report(f"Poiseuille convergence{tag}", min(orders["wss_mean_error"]) > 1.0,
            "observed orders under refinement (x" + ", x".join(str(k) for k in range(2, len(runs) + 1)) + "): "
            + "; ".join(f"{key} " + ", ".join(f"{o:.2f}" for o in v) for key, v in orders.items())
            + " | mean WSS errors " + ", ".join(f"{100 * r['wss_mean_error']:+.2f}%" for r in runs),
            {"orders": orders, "runs": runs})
     for name, r in (("mass (straight pipe)", p), ("mass split 70:30", poiseuille(SPLIT, split_outlet=True,
-                                                                                 split=(0.7, 0.3)))):
-        report(name, r["split_error"] <= 1e-3 and abs(r["imbalance"]) <= 1e-3,
+                                                                                 split=(0.7, 0.3), viscous=viscous))):
+        report(name + tag, r["split_error"] <= 1e-3 and abs(r["imbalance"]) <= 1e-3,
                f"outlet flow error {100 * r['split_error']:.2e}% of the inflow, imbalance {100 * r['imbalance']:+.2e}% "
                f"(both <= 0.1%, consistent flux); P1 n.u flux: imbalance {100 * r['imbalance_p1']:+.3f}%, "
                f"outlet error {100 * r['split_error_p1']:.3f}%", r)
-    w = womersley(cycles=0.25 if quick else 1.0, samples=6 if quick else 24)
-    report("Womersley", w["max_error_of_peak"] <= 0.03,
+    w = womersley(cycles=0.25 if quick else 1.0, samples=6 if quick else 24, viscous=viscous)
+    report(f"Womersley{tag}", w["max_error_of_peak"] <= 0.03,
            f"alpha {w['alpha']:.1f}, WSS error {100 * w['max_error_of_peak']:.2f}% of the peak (<=3%) over "
            f"{'the first quarter cycle' if quick else 'one cycle'}, {w['tetrahedra']} tets, "
            f"{w['steps']} steps", w)
-    print(f"verification took {time.perf_counter() - start:.0f} s", file=out)
-    return results
