@@ -1,14 +1,20 @@
 """Benchmark of the boundary-layer volume mesh against gmsh's own boundary layer and TetGen alone.
 
-Input: the real carotid bifurcation surface of SPHinXsys
-(``/work/shared/data/carotid-surface-sphinxsys/fluid.stl``, closed, flat caps,
-with folded slivers), remeshed isotropically with pymeshlab (preprocessing
-only, standing in for ``carotid surface``, whose output was not available
-when this was written) to the edge length that gives ~1M tetrahedra with 10
-layers; its flat caps are labelled by ``label_flat_caps``.  Every run uses
-this surface, the same core size (the median wall edge) and, where layers
-are built, the same 10 sub-layers, ratio 1.2 and absolute thickness (0.3 x
-the median inscribed radius of the wall), and runs in its own fresh process:
+Inputs, each through carotid's own surface stage (``build_surface``: marching
+cubes, clipped flat caps, Taubin, isotropic remeshing), at the edge length
+that gives ~1M tetrahedra with 10 layers:
+
+* ``phantom``: the demo phantom (``make_phantom(stenosis=0.7, noise=20,
+  seed=0)``, true signed distance and axes, as in ``bench_surface.py``);
+* ``fluid_stl``: the real carotid bifurcation surface of SPHinXsys
+  (``../shared/data/carotid-surface-sphinxsys/fluid.stl``), through
+  ``carotid surface --from-surface`` (level set at 0.3 mm, computed
+  centerlines).
+
+Every run on a surface uses the same core size (the median wall edge) and,
+where layers are built, the same 10 sub-layers, ratio 1.2 and absolute
+thickness (0.3 x the median inscribed radius of the wall), and runs in its
+own fresh process:
 
 * ``carotid``: ``build_mesh`` (gmsh HXT core, 5 Lloyd iterations), and the
   same with the TetGen core;
@@ -25,7 +31,9 @@ the median inscribed radius of the wall), and runs in its own fresh process:
 Layer quality is read back from each mesh the same way
 (``carotid.mesh.quality.walk_layers``: from every wall node follow the mesh
 edge best aligned with the inward normal): first-layer height and growth
-ratio against the request.  Core quality: minimum dihedral angles of the
+ratio against the request, and the first-layer height against the column's
+own total thickness (carotid thins the layer where the lumen narrows, gmsh
+does not, so the first measure mixes the thinning with the grading).  Core quality: minimum dihedral angles of the
 tetrahedra outside the layer.
 
 Usage (from the repository root)::
@@ -45,37 +53,42 @@ import numpy as np
 
 from _common import parse_args, run_isolated, write_results
 
-SURFACE = Path("/work/shared/data/carotid-surface-sphinxsys/fluid.stl")
+SURFACE = Path(__file__).resolve().parents[2] / "shared/data/carotid-surface-sphinxsys/fluid.stl"
 LAYERS, RATIO, THICKNESS_RATIO = 10, 1.2, 0.3
-FULL = {"edge_mm": 0.3}
-QUICK = {"edge_mm": 0.6}
+FULL = {"phantom": 0.35, "fluid_stl": 0.3}  # surface edge, mm
+QUICK = {"phantom": 0.8, "fluid_stl": 0.8}
 
 
-def prepare_surface(edge: float, out: str) -> dict:
-    """Remesh fluid.stl isotropically, label its flat caps, save VTP; return its description."""
-    import pymeshlab
+def prepare_surface(source: str, edge: float, out: str) -> dict:
+    """The labelled surface of ``source`` ("phantom" or "fluid_stl") by carotid's surface stage, saved as VTP;
+    returns its description."""
     import pyvista as pv
+    from bench_surface import _inputs
 
-    from carotid.mesh import check_surface, label_flat_caps
+    from carotid.centerline import compute_centerlines
+    from carotid.mesh import check_surface
     from carotid.mesh.boundary import signed_volume
     from carotid.mesh.layers import build_layers
+    from carotid.surface.external import levelset_from_surface, load_external_surface
+    from carotid.surface.pipeline import build_surface
 
     start = time.perf_counter()
-    raw = pv.read(SURFACE).clean()
-    ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(np.asarray(raw.points, float), raw.regular_faces.astype(np.int32)))
-    ms.meshing_isotropic_explicit_remeshing(iterations=10, targetlen=pymeshlab.PureValue(edge), featuredeg=40)
-    m = ms.current_mesh()
-    surface = label_flat_caps(pv.PolyData.from_regular_faces(m.vertex_matrix(), m.face_matrix()))
+    if source == "phantom":
+        levelset, centerlines = _inputs(False)
+        description = "make_phantom(stenosis=0.7, noise=20, seed=0): true SDF and axes"
+    else:
+        levelset = levelset_from_surface(load_external_surface(SURFACE)[0], spacing=0.3)
+        centerlines = compute_centerlines(levelset)
+        description = f"{SURFACE.name}: level set at 0.3 mm, computed centerlines"
+    surface = build_surface(levelset, centerlines, target_edge_mm=edge)[0]
     surface.save(out)
-    surf = check_surface(surface)
+    surf = check_surface(pv.read(out))
     wall = surf.triangles[surf.labels == 1]
     edges = np.linalg.norm(surf.points[wall] - surf.points[np.roll(wall, 1, axis=1)], axis=2)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         radius = build_layers(surf, layers=1).local_radius
-    return {"source": str(SURFACE), "preprocessing": f"pymeshlab isotropic explicit remeshing, target {edge} mm, "
-            "10 iterations, feature angle 40 deg; flat caps labelled by carotid.mesh.label_flat_caps",
+    return {"source": description, "preprocessing": f"carotid build_surface, target edge {edge} mm",
             "triangles": int(len(surf.triangles)), "wall_triangles": int(len(wall)),
             "labels": np.unique(surf.labels).tolist(), "median_edge_mm": float(np.median(edges)),
             "median_radius_mm": float(np.median(radius)), "volume_mm3": signed_volume(surf.points, surf.triangles),
@@ -93,11 +106,18 @@ def layer_readback(points, tets, wall_triangles, thickness, core_mask) -> dict:
     h = heights[:, complete]
     growth = h[1:] / h[:-1]
     first_error = np.abs(h[0] - requested) / requested
+    # against the column's own total thickness: the grading where a layer was thinned on purpose (stenosis)
+    local = h.sum(axis=0) * (RATIO - 1.0) / (RATIO**LAYERS - 1.0)
+    local_error = np.abs(h[0] - local) / local
     return {"columns": int(depth.shape[1]), "complete_columns_fraction": float(complete.mean()),
             "requested_first_height_mm": requested,
             "first_height_mm": {"mean": float(h[0].mean()), "min": float(h[0].min()), "max": float(h[0].max())},
             "first_height_rel_error": {"mean": float(first_error.mean()), "p95": float(np.percentile(first_error, 95)),
                                        "max": float(first_error.max())},
+            "first_height_rel_error_local": {"mean": float(local_error.mean()),
+                                             "p95": float(np.percentile(local_error, 95)),
+                                             "max": float(local_error.max())},
+            "thinned_columns_fraction": float((h.sum(axis=0) < 0.99 * thickness).mean()),
             "growth_ratio": {"mean": float(growth.mean()),
                              "mean_abs_error": float(np.abs(growth - RATIO).mean()),
                              "p95_abs_error": float(np.percentile(np.abs(growth - RATIO), 95)),
@@ -228,34 +248,32 @@ def run_tetgen_alone(path: str, size: float) -> dict:
             "tets_per_minute": 60.0 * len(tets) / seconds, "min_dihedral": angle_summary(min_dihedral(nodes, tets))}
 
 
-def main() -> None:
-    args = parse_args(__doc__.splitlines()[0])
-    setting = QUICK if args.quick else FULL
-    with tempfile.TemporaryDirectory() as tmp:
-        path = str(Path(tmp) / "surface.vtp")
-        surface = run_isolated(prepare_surface, setting["edge_mm"], path)["result"]
-        size = surface["median_edge_mm"]
-        runs = {}
+def compare(source: str, edge: float, tmp: str) -> dict:
+    """Every run on one surface; its figures and targets."""
+    path = str(Path(tmp) / f"{source}.vtp")
+    surface = run_isolated(prepare_surface, source, edge, path)["result"]
+    size = surface["median_edge_mm"]
+    runs = {}
 
-        def run(name, func, *extra):
-            measured = run_isolated(func, path, *extra)
-            runs[name] = {**measured["result"], "peak_rss_mb": measured["peak_rss_mb"]}
-            print(name, {k: runs[name].get(k) for k in ("seconds", "tetrahedra", "tets_per_minute", "error")})
+    def run(name, func, *extra):
+        measured = run_isolated(func, path, *extra)
+        runs[name] = {**measured["result"], "peak_rss_mb": measured["peak_rss_mb"]}
+        print(source, name, {k: runs[name].get(k) for k in ("seconds", "tetrahedra", "tets_per_minute", "error")})
 
-        # gmsh's layer has one thickness everywhere; where it fails, halve it until it works and compare there
-        thickness = THICKNESS_RATIO * surface["median_radius_mm"]
-        print(f"surface: {surface['triangles']} triangles, edge {size:.3f} mm, layer thickness {thickness:.3f} mm")
-        run("carotid", run_carotid, thickness, size, "gmsh")
-        run("carotid_tetgen_core", run_carotid, thickness, size, "tetgen")
-        gmsh_thickness = thickness
-        for attempt in range(3):
-            run(f"gmsh_bl_{gmsh_thickness:.3f}mm", run_gmsh_bl, gmsh_thickness, size)
-            if "error" not in runs[f"gmsh_bl_{gmsh_thickness:.3f}mm"]:
-                break
-            gmsh_thickness /= 2.0
-        if gmsh_thickness != thickness:
-            run(f"carotid_{gmsh_thickness:.3f}mm", run_carotid, gmsh_thickness, size, "gmsh")
-        run("tetgen_alone", run_tetgen_alone, size)
+    # gmsh's layer has one thickness everywhere; where it fails, halve it until it works and compare there
+    thickness = THICKNESS_RATIO * surface["median_radius_mm"]
+    print(f"{source}: {surface['triangles']} triangles, edge {size:.3f} mm, layer thickness {thickness:.3f} mm")
+    run("carotid", run_carotid, thickness, size, "gmsh")
+    run("carotid_tetgen_core", run_carotid, thickness, size, "tetgen")
+    gmsh_thickness = thickness
+    for attempt in range(3):
+        run(f"gmsh_bl_{gmsh_thickness:.3f}mm", run_gmsh_bl, gmsh_thickness, size)
+        if "error" not in runs[f"gmsh_bl_{gmsh_thickness:.3f}mm"]:
+            break
+        gmsh_thickness /= 2.0
+    if gmsh_thickness != thickness:
+        run(f"carotid_{gmsh_thickness:.3f}mm", run_carotid, gmsh_thickness, size, "gmsh")
+    run("tetgen_alone", run_tetgen_alone, size)
     ours = runs[f"carotid_{gmsh_thickness:.3f}mm"] if gmsh_thickness != thickness else runs["carotid"]
     theirs = runs[f"gmsh_bl_{gmsh_thickness:.3f}mm"]
     targets = {"tets_per_minute_ge_1M": runs["carotid"]["tets_per_minute"] >= 1e6,
@@ -268,13 +286,23 @@ def main() -> None:
             "time_le_2x_gmsh_bl": ours["seconds"] <= 2.0 * theirs["seconds"],
             "first_height_error_le_gmsh": ro["first_height_rel_error"]["mean"]
             <= rt["first_height_rel_error"]["mean"] + slack,
+            "first_height_error_local_le_gmsh": ro["first_height_rel_error_local"]["mean"]
+            <= rt["first_height_rel_error_local"]["mean"] + 1e-6,
             "growth_error_le_gmsh": ro["growth_ratio"]["mean_abs_error"]
             <= rt["growth_ratio"]["mean_abs_error"] + slack,
             "core_min_dihedral_ge_gmsh": ro["core_min_dihedral"]["min_deg"] >= rt["core_min_dihedral"]["min_deg"],
             "core_fraction_ge_20deg_ge_gmsh": ro["core_min_dihedral"]["fraction_ge_20deg"]
             >= rt["core_min_dihedral"]["fraction_ge_20deg"]})
-    write_results("mesh", {"surface": surface, "layers": LAYERS, "ratio": RATIO, "thickness_mm": thickness,
-                           "size_mm": size, "runs": runs, "targets": targets}, quick=args.quick)
+    return {"surface": surface, "thickness_mm": thickness, "size_mm": size, "runs": runs, "targets": targets}
+
+
+def main() -> None:
+    args = parse_args(__doc__.splitlines()[0])
+    setting = QUICK if args.quick else FULL
+    with tempfile.TemporaryDirectory() as tmp:
+        figures = {source: compare(source, edge, tmp) for source, edge in setting.items()
+                   if source == "phantom" or SURFACE.exists()}
+    write_results("mesh", {"layers": LAYERS, "ratio": RATIO, **figures}, quick=args.quick)
 
 
 if __name__ == "__main__":

@@ -92,12 +92,12 @@ def cmd_segment(args) -> int:
     return 0
 
 
-# Coarse settings of `carotid demo`: a 0.8 mm surface, 2 wall layers, a fifth of a cardiac cycle (through
-# the systolic peak at 0.158 s).
+# Coarse settings of `carotid demo`: a 0.8 mm surface, 2 wall layers, one cardiac cycle (the WSS indices
+# are cycle averages).
 DEMO_CONFIG = {
     "surface": {"target_edge_mm": 0.8},
     "mesh": {"layers": 2, "thickness_ratio": 0.15},
-    "simulate": {"cycles": 0.2, "output_every": 50, "checkpoint_every": 500},
+    "simulate": {"cycles": 1.0, "output_every": 50, "checkpoint_every": 500},
 }
 
 

@@ -216,7 +216,8 @@ def test_vtu_round_trip(tmp_path):
     assert np.allclose(back.points, mesh.points) and np.array_equal(back.labels, mesh.labels)
 
 
-def test_spalart_allmaras_stays_small_in_laminar_pipe():
+@pytest.mark.parametrize("viscous", ["explicit", "implicit"])
+def test_spalart_allmaras_stays_small_in_laminar_pipe(viscous):
     from carotid.flow.cbs import CBSSolver
     from carotid.flow.turbulence import SpalartAllmaras
     from carotid.flow.verify import NU, developed_start, steady_waveform
@@ -226,7 +227,7 @@ def test_spalart_allmaras_stays_small_in_laminar_pipe():
     nodes, pts, tris = mesh.face_patch(2)
     profile = inlet_profile(pts, tris, mesh.face_normal(2), steady_waveform(6e-6), NU, 0)
     sa = SpalartAllmaras(mesh, NU)
-    solver = CBSSolver(mesh, profile.velocity, NU, turbulence=sa)
+    solver = CBSSolver(mesh, profile.velocity, NU, turbulence=sa, viscous=viscous)
     solver.reset(developed_start(mesh, profile))
     for _ in range(200):
         solver.step()

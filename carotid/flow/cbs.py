@@ -32,19 +32,21 @@ vanishes for a linear pressure: an orthogonal-projection stabilisation in the se
 and the discrete fully developed (Poiseuille) profile of the section is an exact steady state.
 
 Implicit viscosity (``viscous="implicit"``, not in the paper; the default of :func:`carotid.flow.simulate`).
-With explicit viscosity the global step is bounded by ``h^2 / (2 nu)`` of the thinnest wall layer: about
-1e-6 s on a patient mesh with a 0.03 mm first layer, a million steps per cardiac cycle.  The implicit
-option treats the molecular viscous term of step 1 by backward Euler::
+With explicit viscosity the global step is bounded by ``h^2 / (2 nu)`` of the thinnest wall layer: 1e-7 to
+1e-6 s on a patient mesh with ten layers, millions of steps per cardiac cycle.  The implicit option treats
+the molecular viscous term of step 1 by backward Euler::
 
        (M / dt + nu K) dU* = -C(u) u - nu_e K u - (dt/2) S(u) u + nu K (dt M^-1 P grad p^n)
 
-(``nu_e`` includes the turbulent viscosity, which stays explicit; the last, lagged term makes a steady
-state independent of dt, see :meth:`CBSSolver._implicit_momentum`), so the step is bounded by the
-convective limit (and the explicit turbulent diffusion) only.  Where the step then exceeds ``tau_e`` the
-pressure stabilisation uses ``max(tau_e, dt)`` (:meth:`CBSSolver._pressure_system`).  The three velocity
-components share one symmetric positive definite matrix; its solver (LU or AMG, as for the pressure) and
-the pressure system are rebuilt only when the step moves to another level of a quarter-octave grid
-(``dt = 2^(k/4)`` s, rounded down), so an adaptive step costs a set-up a few times per cycle.
+``nu_e`` includes the turbulent viscosity, which stays explicit; the last, lagged term makes a steady state
+independent of dt (:meth:`CBSSolver._implicit_momentum`).  The step is then bounded by the convective
+limit measured along the flow (:meth:`CBSSolver.time_step`).  The Spalart-Allmaras equation stays explicit,
+molecular diffusion included, so with ``turbulence`` the step is bounded as before: the gain is for laminar
+runs.  Where the step exceeds ``tau_e`` the pressure stabilisation uses ``max(tau_e, dt)``
+(:meth:`CBSSolver._pressure_system`).  The three velocity components share one symmetric positive definite
+matrix; its solver (LU or AMG, as for the pressure) and the pressure system are rebuilt only when the step
+moves to another level of a quarter-octave grid (``dt = 2^(k/4)`` s, rounded down), so an adaptive step
+costs a set-up a few times per cycle.
 
 Boundary conditions: rigid no-slip walls (label 1); inlet (label 2) velocity = the inlet profile's axial
 speed times the inward normal; outlets (labels 3, ...) are traction-free (Laplacian-form viscous term)
@@ -278,6 +280,7 @@ class CBSSolver:
         self._proj = np.zeros(n)
         self._gp = np.zeros((n, 3))
         self._speed = np.zeros(len(mesh.tets))
+        self._rate = np.zeros(len(mesh.tets))
         self.reset()
 
     # ------------------------------------------------------------------ set-up
@@ -368,14 +371,15 @@ class CBSSolver:
         return self.system.flux_response
 
     def _setup_implicit_viscosity(self) -> None:
-        """The molecular viscous matrix split into free/Dirichlet velocity columns, and the h scale below
-        which no convective limit is sought (a fluid at rest has none)."""
+        """The molecular viscous matrix split into free/Dirichlet velocity columns, and the size ``h_rest`` of
+        the step for a fluid at rest (:meth:`time_step`)."""
         k = asm.stiffness_matrix(self.volumes * self.nu, self.grads, self.mesh.tets, self.mesh.n_points)
         self._u_free = np.flatnonzero(~self.u_dirichlet)
         self._kv_ff = k[self._u_free][:, self._u_free].tocsr()
         self._kv_fd = k[self._u_free][:, self.u_dirichlet].tocsr()
         self._viscous_solvers: dict[float, PressureSolver] = {}  # by dt, the few most recent
         self._du_free = np.zeros((len(self._u_free), 3))
+        self._h_rest = float(np.median(np.cbrt(6.0 * np.sqrt(2.0) * self.volumes)))
 
     @staticmethod
     def _dt_level(dt: float) -> float:
@@ -489,25 +493,34 @@ class CBSSolver:
     def time_step(self, nu_e: np.ndarray) -> tuple[float, float]:
         """``(dt, CFL)`` for the current velocity: adaptive or fixed, and ``max |u_e| dt / h_e``.
 
-        The adaptive step is ``safety / max_e(|u_e|/h_e + 2 nu_e/h_e^2)`` with the explicit part of the
-        viscosity; with implicit viscosity that is the turbulent part only, and the rate is at least
-        ``velocity_scale / median(h_e)`` (a step for a fluid still at rest), then rounded down to its level.
+        The adaptive step is ``safety / max_e(c_e + 2 nu_e/h_e^2)`` with the explicit diffusivity (the
+        viscosity, and with Spalart-Allmaras at least that of its own explicit equation) and the convective
+        rate ``c_e = |u_e| / h_e``.  With implicit viscosity and no turbulence model there is no explicit
+        diffusivity, ``c_e`` is the directional rate of
+        :func:`carotid.flow.assembly.element_convective_rate` (a thin wall-layer element crossed
+        tangentially does not set the step), the rate is at least ``velocity_scale / h_rest`` (a step for a
+        fluid still at rest; ``h_rest`` is the median edge of the regular tetrahedron of each element's volume,
+        not its thickness, which in a layered mesh would bind every step), and the step is rounded down to its level.
         """
-        asm.element_speed(self.mesh.tets, self.u, self._speed)
+        if self.viscous == "implicit":
+            asm.element_convective_rate(self.mesh.tets, self.grads, self.u, self._rate)
+        else:
+            asm.element_speed(self.mesh.tets, self.u, self._speed)
+            self._rate[:] = self._speed / self.h
         nu_dt = nu_e if self.turbulence is None else np.maximum(nu_e, self.turbulence.diffusivity_bound(
             self.nut_hat, self.mesh.tets))
-        if self.viscous == "implicit":
-            nu_dt = nu_dt - self.nu
+        if self.viscous == "implicit" and self.turbulence is None:
+            nu_dt = 0.0  # (the Spalart-Allmaras equation keeps its explicit diffusion, molecular part included)
         if self.fixed_dt is not None:
             dt = self.fixed_dt
         else:
-            rate = float(np.max(self._speed / self.h + 2.0 * nu_dt / self.h**2))
+            rate = float(np.max(self._rate + 2.0 * nu_dt / self.h**2))
             if self.viscous == "implicit":
-                rate = max(rate, self.velocity_scale / float(np.median(self.h)))
+                rate = max(rate, self.velocity_scale / self._h_rest)
             dt = self.safety / rate
             if self.viscous == "implicit":
                 dt = self._dt_level(dt)
-        return dt, float(np.max(self._speed / self.h) * dt)
+        return dt, float(np.max(self._rate) * dt)
 
     def step(self, max_dt: float | None = None) -> StepInfo:
         """Advance one time step (at most ``max_dt`` s long); returns its diagnostics."""
