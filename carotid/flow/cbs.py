@@ -154,6 +154,17 @@ class PressureSolver:
         return x
 
 
+def _most_recent(cache: dict, key, build: Callable[[], object], keep: int = 3):
+    """``cache[key]``, made by ``build()`` when missing; only the ``keep`` most recently used entries stay."""
+    value = cache.pop(key, None)
+    if value is None:
+        value = build()
+    cache[key] = value  # most recent last
+    while len(cache) > keep:
+        del cache[next(iter(cache))]
+    return value
+
+
 @dataclass
 class PressureSystem:
     """The pressure equation for one set of stabilisation times (see :meth:`CBSSolver._pressure_system`).
@@ -330,13 +341,8 @@ class CBSSolver:
         docstring) would then grow from step to step; ``max(tau_e, dt)`` keeps it a damping.  One system per
         step level; the three most recent are kept.
         """
-        system = self._systems.pop(dt, None)
-        if system is None:
-            system = self._build_pressure_system(self.tau if dt is None else np.maximum(self.tau, dt))
-        self._systems[dt] = system
-        while len(self._systems) > 3:
-            del self._systems[next(iter(self._systems))]
-        return system
+        return _most_recent(self._systems, dt,
+                            lambda: self._build_pressure_system(self.tau if dt is None else np.maximum(self.tau, dt)))
 
     def _build_pressure_system(self, tau: np.ndarray) -> PressureSystem:
         """Matrix ``K_tau``, its solver, the outlet liftings ``phi_j`` and velocity corrections ``s_j``."""
@@ -389,14 +395,8 @@ class CBSSolver:
     def _viscous_step(self, dt: float) -> PressureSolver:
         """The solver of ``(M/dt + nu K)`` on the free velocity nodes for this ``dt`` (the three most recent
         are kept: a step shortened to hit an output time must not evict the running level)."""
-        solver = self._viscous_solvers.pop(dt, None)
-        if solver is None:
-            solver = PressureSolver(self._kv_ff + sp.diags(self.mass[self._u_free] / dt), self._pressure_method,
-                                    self._rtol)
-        self._viscous_solvers[dt] = solver  # most recent last
-        while len(self._viscous_solvers) > 3:
-            del self._viscous_solvers[next(iter(self._viscous_solvers))]
-        return solver
+        return _most_recent(self._viscous_solvers, dt, lambda: PressureSolver(
+            self._kv_ff + sp.diags(self.mass[self._u_free] / dt), self._pressure_method, self._rtol))
 
     def _implicit_momentum(self, dt: float, t1: float) -> np.ndarray:
         """``u*`` of step 1 with backward-Euler molecular viscosity (Dirichlet values at ``t1`` included).
@@ -511,15 +511,13 @@ class CBSSolver:
             self.nut_hat, self.mesh.tets))
         if self.viscous == "implicit" and self.turbulence is None:
             nu_dt = 0.0  # (the Spalart-Allmaras equation keeps its explicit diffusion, molecular part included)
+        rate = float(np.max(self._rate + 2.0 * nu_dt / self.h**2))
         if self.fixed_dt is not None:
             dt = self.fixed_dt
+        elif self.viscous == "implicit":
+            dt = self._dt_level(self.safety / max(rate, self.velocity_scale / self._h_rest))
         else:
-            rate = float(np.max(self._rate + 2.0 * nu_dt / self.h**2))
-            if self.viscous == "implicit":
-                rate = max(rate, self.velocity_scale / self._h_rest)
             dt = self.safety / rate
-            if self.viscous == "implicit":
-                dt = self._dt_level(dt)
         return dt, float(np.max(self._rate) * dt)
 
     def step(self, max_dt: float | None = None) -> StepInfo:
