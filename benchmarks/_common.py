@@ -10,7 +10,6 @@ The scripts import this module as ``_common``; they are run as
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import resource
@@ -26,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
 
-from carotid.io import Volume, to_sitk
+from carotid.io import Volume, to_sitk, write_json
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
 PACKAGES = ("numpy", "scipy", "SimpleITK", "numba", "scikit-image", "carotid")
@@ -180,7 +179,7 @@ def write_results(name: str, figures: dict, quick: bool = False) -> Path:
         "machine": machine_info(),
         **figures,
     }
-    path.write_text(json.dumps(_jsonable(document), indent=2) + "\n")
+    write_json(_jsonable(document), path)
     print(f"wrote {path}")
     return path
 
