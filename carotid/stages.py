@@ -135,6 +135,9 @@ class FlowStageParameters:
     viscous : str
         "explicit" (the paper's CBS: the step is bounded by the thinnest wall layer) or "implicit"
         (backward-Euler viscosity: the step is bounded by convection only).
+    pressure : str
+        Pressure solver: "auto" (sparse Cholesky up to 300k unknowns, AMG-CG above), "cholesky", "amg",
+        "lu" or "jacobi".
     output_every : int
         Steps between outputs of the time series.
     checkpoint_every : int
@@ -151,6 +154,7 @@ class FlowStageParameters:
     split: list = field(default_factory=list)
     turbulence: str = "none"
     viscous: str = "implicit"
+    pressure: str = "auto"
     output_every: int = 50
     checkpoint_every: int = 500
     rho: float = 1060.0

@@ -95,6 +95,37 @@ def test_implicit_step_is_not_bounded_by_the_thinnest_layer():
     assert steps["implicit"] >= 30 * steps["explicit"]
 
 
+def test_pressure_solvers_agree_and_the_implicit_matrix_bounds_every_step():
+    import scipy.sparse as sp
+
+    from carotid.flow.cbs import CBSSolver, PressureSolver
+    from carotid.flow.verify import NU, developed_start, steady_waveform
+    from carotid.flow.womersley import inlet_profile
+
+    mesh = tube_mesh(TubeSpec(n_layers=4, first_layer=0.02))
+    nodes, pts, tris = mesh.face_patch(2)
+    profile = inlet_profile(pts, tris, mesh.face_normal(2), steady_waveform(6e-6), NU, 0)
+    k = CBSSolver(mesh, profile.velocity, NU).system.solver.matrix
+    b = np.random.default_rng(0).standard_normal(k.shape[0])
+    solvers = {m: PressureSolver(k, m, rtol=1e-12) for m in ("cholesky", "amg", "lu", "jacobi")}
+    x = {m: s.solve(b) for m, s in solvers.items()}
+    assert PressureSolver(k).method == "cholesky"  # "auto" below CHOLESKY_LIMIT
+    assert np.linalg.norm(k @ x["cholesky"] - b) <= 1e-10 * np.linalg.norm(b)
+    for m in ("amg", "lu", "jacobi"):
+        assert np.linalg.norm(x[m] - x["cholesky"]) <= 1e-8 * np.linalg.norm(x["cholesky"])
+    with pytest.raises(CarotidError, match="unknown pressure solver"):
+        PressureSolver(sp.identity(3), "qr")
+    # implicit viscosity: one pressure matrix for the run, its stabilisation time >= every step taken
+    solver = CBSSolver(mesh, profile.velocity, NU, viscous="implicit")
+    solver.reset()  # from rest: the longest steps
+    system = solver.system
+    dts = [solver.step().dt for _ in range(5)]
+    solver.reset(developed_start(mesh, profile))
+    dts += [solver.step().dt for _ in range(5)]
+    assert solver.system is system and system.tau.min() >= max(dts) * (1 - 1e-12)
+    assert system.tau.min() < solver.tau.max()  # core elements keep their own, longer tau_e
+
+
 @pytest.mark.parametrize("viscous", ["explicit", "implicit"])
 def test_womersley_wss_over_a_cycle(viscous):
     # alpha 4.7, the built-in carotid waveform, generalised inlet profile: WSS within 3 % of the analytic
@@ -206,6 +237,9 @@ def test_bad_inputs(tmp_path):
     args = build_parser().parse_args(["simulate", str(tmp_path), "--split", "0.7:0.2"])
     mesh.to_pyvista().save(tmp_path / "mesh.vtu")
     with pytest.raises(CarotidError, match="ratios"):
+        args.func(args)
+    args = build_parser().parse_args(["simulate", str(tmp_path), "--pressure", "qr"])
+    with pytest.raises(CarotidError, match="--pressure must be one of auto, cholesky"):
         args.func(args)
 
 

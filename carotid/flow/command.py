@@ -33,8 +33,8 @@ def cmd_simulate(args) -> int:
 
         waveform = read_waveform_csv(args.waveform)
     params = FlowParameters(cycles=args.cycles, dt=args.dt, waveform=waveform, split=_split(args.split),
-                            turbulence=args.turbulence, viscous=args.viscous, output_every=args.output_every,
-                            checkpoint_every=args.checkpoint_every)
+                            turbulence=args.turbulence, viscous=args.viscous, pressure=args.pressure,
+                            output_every=args.output_every, checkpoint_every=args.checkpoint_every)
     bar = tqdm(total=1.0, unit="cycle", file=sys.stderr, disable=None, dynamic_ncols=True,
                bar_format="{l_bar}{bar}| {postfix}")
 
@@ -75,6 +75,9 @@ def register(subparsers) -> None:
     p.add_argument("--turbulence", choices=("none", "sa"), default="none", help="Spalart-Allmaras or none")
     p.add_argument("--viscous", choices=("explicit", "implicit"), default="implicit",
                    help="viscous term: explicit (the paper's CBS) or implicit (larger steps on thin wall layers)")
+    p.add_argument("--pressure", default="auto", metavar="SOLVER",
+                   help="pressure solver: auto (sparse Cholesky up to 300k unknowns, AMG-CG above), cholesky, amg, "
+                        "lu or jacobi")
     p.add_argument("--output-every", type=int, default=50, metavar="K", help="steps between outputs (50)")
     p.add_argument("--checkpoint-every", type=int, default=500, metavar="M", help="steps between checkpoints")
     p.add_argument("--resume", action="store_true", help="continue from CASE_DIR/flow/checkpoint.npz")

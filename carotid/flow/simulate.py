@@ -21,7 +21,7 @@ from typing import Callable
 import numpy as np
 
 from carotid.errors import CarotidError
-from carotid.flow.cbs import CBSSolver
+from carotid.flow.cbs import CBSSolver, PressureSolver
 from carotid.flow.mesh import INLET, MM, FlowMesh
 from carotid.flow.output import FlowWriter, load_checkpoint, save_checkpoint, write_wall_vtp
 from carotid.flow.wss import WallShear
@@ -85,6 +85,8 @@ class FlowParameters:
             raise CarotidError(f"--turbulence must be 'sa' or 'none' (got {self.turbulence!r})")
         if self.viscous not in CBSSolver.VISCOUS:
             raise CarotidError(f"--viscous must be 'explicit' or 'implicit' (got {self.viscous!r})")
+        if self.pressure not in PressureSolver.METHODS:
+            raise CarotidError(f"--pressure must be one of {', '.join(PressureSolver.METHODS)} (got {self.pressure!r})")
         if self.output_every < 1 or self.checkpoint_every < 1:
             raise CarotidError("--output-every and the checkpoint interval must be at least 1 step")
         if not (0 < self.safety <= 1):
