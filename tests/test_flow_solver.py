@@ -188,6 +188,13 @@ def test_resume_equals_uninterrupted(tmp_path, viscous):
 
     with pytest.raises(Killed):
         simulate(mesh, tmp_path / "b", _params(viscous=viscous, checkpoint_every=8), progress=kill)
+    from threadpoolctl import threadpool_info  # simulate limits BLAS to one thread while it runs
+
+    blas_threads = []
+    simulate(mesh, tmp_path / "c", _params(viscous=viscous, cycles=0.01),
+             progress=lambda info: blas_threads.append({p["num_threads"] for p in threadpool_info()
+                                                         if p["user_api"] == "blas"}))
+    assert blas_threads and all(t == {1} for t in blas_threads)
     summary = simulate(mesh, tmp_path / "b", _params(viscous=viscous, checkpoint_every=8), resume=True)
     resumed, _ = load_checkpoint(tmp_path / "b" / "flow" / "checkpoint.npz")
     assert resumed["step"] == full["step"] and summary["steps"] == full["step"]

@@ -106,10 +106,11 @@ class PressureSolver:
         Symmetric positive definite.
     method : {"auto", "cholesky", "amg", "lu", "jacobi"}
         "auto": CHOLMOD's Cholesky factorisation (cholespy) up to ``CHOLESKY_LIMIT`` unknowns, pyamg above.
-        One factorisation, then each solve is two triangular sweeps: on a 10-layer mesh of 490k tetrahedra
-        (84k unknowns) 0.06 s per solve against 0.6 s for AMG-CG, after a 30 s factorisation (cholespy
-        bundles the reference BLAS) and with ~0.5 GB for the factor; fill-in grows like ``k^(4/3)`` in 3D,
-        hence the limit.  "lu" (SuperLU) and "jacobi" are kept for comparison (benchmarks/bench_flow.py).
+        One factorisation, then each solve is two triangular sweeps: on a 10-layer tube of 490k tetrahedra
+        (84k unknowns) 0.06 s per solve against 0.55 s for AMG-CG, after a 31 s factorisation (cholespy
+        bundles the reference BLAS) and with 0.25 GB more memory; on a 1.09M-tetrahedron carotid mesh (190k
+        unknowns) 49 s and 0.7 GB more for the set-up.  Fill-in grows faster than ``k`` in 3D, hence the
+        limit.  "lu" (SuperLU) and "jacobi" are kept for comparison (benchmarks/bench_flow.py).
     rtol : float
         Relative residual ``|b - A x| / |b|`` at which the iterative methods stop.
     """

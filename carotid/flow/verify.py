@@ -23,6 +23,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from carotid.flow.mesh import WALL, FlowMesh
 
@@ -291,6 +292,7 @@ def _order(runs: list[dict], key: str) -> list[float]:
     return (np.log(e[:-1] / e[1:]) / np.log(h[:-1] / h[1:])).tolist()
 
 
+@threadpool_limits.wrap(limits=1, user_api="blas")  # as carotid.flow.simulate.simulate
 def run_verification(quick: bool = False, out=None) -> list[dict]:
     """Run the cases, print one pass/fail line each to ``out``, return the results."""
     import sys
