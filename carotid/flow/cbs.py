@@ -144,13 +144,14 @@ class PressureSolver:
 
     def solve(self, b: np.ndarray, x0: np.ndarray | None = None) -> np.ndarray:
         """Solve ``A x = b`` from the initial guess ``x0``; sets ``.iterations``."""
-        if self.method in ("cholesky", "lu"):
+        if self.method == "cholesky":
             self.iterations = 1
-            if self.method == "lu":
-                return self._lu.solve(b)
             x = np.empty(len(b))
             self._chol.solve(np.ascontiguousarray(b, dtype=float), x)
             return x
+        if self.method == "lu":
+            self.iterations = 1
+            return self._lu.solve(b)
         if not np.any(b):
             self.iterations = 0
             return np.zeros_like(b)
