@@ -137,8 +137,8 @@ class PressureSolver:
         elif method == "lu":
             self._lu = spla.splu(self.matrix.tocsc())
         elif method == "jacobi":
-            self._inv_diag = spla.LinearOperator(self.matrix.shape, matvec=lambda x: x / self.matrix.diagonal(),
-                                                 dtype=float)
+            inv_diag = 1.0 / self.matrix.diagonal()
+            self._jacobi = spla.LinearOperator(self.matrix.shape, matvec=lambda x: inv_diag * x, dtype=float)
         else:
             raise CarotidError(f"unknown pressure solver {method!r} ({', '.join(self.METHODS)})")
 
@@ -165,37 +165,9 @@ class PressureSolver:
             x = self._ml.solve(b, x0=x0, tol=self.rtol, accel="cg", maxiter=500, residuals=residuals)
             self.iterations = max(len(residuals) - 1, 0)
             return x
-        x, _ = spla.cg(self.matrix, b, x0=x0, rtol=self.rtol, maxiter=20000, M=self._inv_diag, callback=callback)
+        x, _ = spla.cg(self.matrix, b, x0=x0, rtol=self.rtol, maxiter=20000, M=self._jacobi, callback=callback)
         self.iterations = count[0]
         return x
-
-
-@dataclass
-class PressureSystem:
-    """The pressure equation with its stabilisation times (see :meth:`CBSSolver._stabilisation_times`).
-
-    Attributes
-    ----------
-    tau : ndarray, shape (m,)
-        Stabilisation time per element, s.
-    k_out : sparse matrix, shape (outlet nodes, n)
-        Outlet rows of ``K_tau``.
-    solver : PressureSolver
-        For the free rows and columns of ``K_tau``.
-    phi : ndarray, shape (outlets, n)
-        ``K_tau``-harmonic liftings of unit outlet pressures.
-    s : ndarray, shape (outlets, n, 3)
-        Velocity correction per unit outlet pressure, before the dt factor, 1/m.
-    flux_response : ndarray, shape (outlets, outlets)
-        Consistent outlet fluxes per unit outlet pressure.
-    """
-
-    tau: np.ndarray
-    k_out: object
-    solver: PressureSolver
-    phi: np.ndarray
-    s: np.ndarray
-    flux_response: np.ndarray
 
 
 @dataclass
@@ -289,7 +261,7 @@ class CBSSolver:
         self.tau = 1.0 / (velocity_scale / self.h + 2.0 * self.nu / self.h**2)
         if viscous == "implicit":
             self._setup_implicit_viscosity()
-        self.system = self._build_pressure_system(self._stabilisation_times())
+        self._setup_pressure(self._stabilisation_times())
         self._resid = np.zeros((n, 3))
         self._div = np.zeros(n)
         self._proj = np.zeros(n)
@@ -351,37 +323,30 @@ class CBSSolver:
         dt_max = self.fixed_dt if self.fixed_dt is not None else self.safety * self._h_rest / self.velocity_scale
         return np.maximum(self.tau, dt_max)
 
-    def _build_pressure_system(self, tau: np.ndarray) -> PressureSystem:
-        """Matrix ``K_tau``, its solver, the outlet liftings ``phi_j`` and velocity corrections ``s_j``."""
+    def _setup_pressure(self, tau: np.ndarray) -> None:
+        """The pressure equation for the stabilisation times ``tau`` (m,), s: matrix ``K_tau`` and its solver
+        ``pressure``, outlet rows ``_k_out``, outlet liftings ``phi`` (outlets, n), velocity corrections per unit
+        outlet pressure ``s`` (outlets, n, 3; before the dt factor, 1/m) and ``flux_response`` (outlets,
+        outlets), the consistent outlet fluxes per unit outlet pressure, m^3/s per (m^2/s^2)."""
         n, m = self.mesh.n_points, len(self.outlets)
+        self.tau_stab = tau
         k = asm.stiffness_matrix(self.volumes * tau, self.grads, self.mesh.tets, n)
         k_fd = k[self.free][:, self.p_dirichlet]
-        k_out = k[self.p_dirichlet]  # outlet rows of the pressure matrix: the consistent outlet fluxes
-        solver = PressureSolver(k[self.free][:, self.free], self._pressure_method, self._rtol)
-        phi = np.zeros((m, n))
-        s = np.zeros((m, n, 3))
+        self._k_out = k[self.p_dirichlet]  # outlet rows of the pressure matrix: the consistent outlet fluxes
+        self.pressure = PressureSolver(k[self.free][:, self.free], self._pressure_method, self._rtol)
+        self.phi = np.zeros((m, n))
+        self.s = np.zeros((m, n, 3))
         for j in range(m):
             pd = (self.p_owner == j).astype(float)
-            phi[j, self.p_dirichlet] = pd
+            self.phi[j, self.p_dirichlet] = pd
             if m > 1:
-                phi[j, self.free] = solver.solve(-(k_fd @ pd))
+                self.phi[j, self.free] = self.pressure.solve(-(k_fd @ pd))
             grad = np.zeros((n, 3))
-            asm.lumped_gradient(self.mesh.tets, self.grads, self.volumes, phi[j], grad)
-            s[j] = -grad / self.mass[:, None]
-            s[j, self.u_dirichlet] = 0.0
+            asm.lumped_gradient(self.mesh.tets, self.grads, self.volumes, self.phi[j], grad)
+            self.s[j] = -grad / self.mass[:, None]
+            self.s[j, self.u_dirichlet] = 0.0
         # consistent outlet flux per unit outlet pressure: -sum_i share[i] (K_tau phi_j)_i, [outlet i, lifting j]
-        flux_response = -self.out_share @ np.column_stack([k_out @ phi[j] for j in range(m)])
-        return PressureSystem(tau, k_out, solver, phi, s, flux_response)
-
-    @property
-    def pressure(self) -> PressureSolver:
-        """The current pressure solver."""
-        return self.system.solver
-
-    @property
-    def flux_response(self) -> np.ndarray:
-        """Consistent outlet flux per unit outlet pressure, m^3/s per (m^2/s^2), shape (outlets, outlets)."""
-        return self.system.flux_response
+        self.flux_response = -self.out_share @ np.column_stack([self._k_out @ self.phi[j] for j in range(m)])
 
     def _setup_implicit_viscosity(self) -> None:
         """The molecular viscous matrix split into free/Dirichlet velocity columns, and the size ``h_rest`` of
@@ -390,6 +355,7 @@ class CBSSolver:
         self._u_free = np.flatnonzero(~self.u_dirichlet)
         self._kv_ff = k[self._u_free][:, self._u_free].tocsr()
         self._kv_fd = k[self._u_free][:, self.u_dirichlet].tocsr()
+        self._kv_diag = self._kv_ff.diagonal()
         self._du_free = np.zeros((len(self._u_free), 3))
         self._h_rest = float(np.median(np.cbrt(6.0 * np.sqrt(2.0) * self.volumes)))
 
@@ -399,7 +365,7 @@ class CBSSolver:
         shift = self.mass[self._u_free] / dt
         kv = self._kv_ff
         a = spla.LinearOperator(kv.shape, matvec=lambda x: kv @ x + shift * x, dtype=float)
-        inv_diag = 1.0 / (kv.diagonal() + shift)
+        inv_diag = 1.0 / (self._kv_diag + shift)
         jacobi = spla.LinearOperator(kv.shape, matvec=lambda x: inv_diag * x, dtype=float)
         for c in range(3):
             self._du_free[:, c], info = spla.cg(a, rhs[:, c], x0=self._du_free[:, c], rtol=self._rtol,
@@ -547,32 +513,31 @@ class CBSSolver:
         # 2. pressure with zero outlet pressure
         asm.weak_divergence(tets, self.grads, self.volumes, ustar, self._div)
         self._div[self._in_nodes] -= self._inlet_nodal_flux(ustar)
-        system = self.system
         projected = self._gp / self.mass[:, None]
-        asm.weak_divergence(tets, self.grads, self.volumes * (system.tau - dt), projected, self._proj)
+        asm.weak_divergence(tets, self.grads, self.volumes * (self.tau_stab - dt), projected, self._proj)
         rhs = self._div + self._proj
         # the correction skips velocity-Dirichlet nodes: put their dt P(grad p^n) back into the balance
         projected[~self.u_dirichlet] = 0.0
         asm.weak_divergence(tets, self.grads, self.volumes * dt, projected, self._proj)
         rhs += self._proj
-        self._p0_free = system.solver.solve(rhs[self.free], x0=self._p0_free)
+        self._p0_free = self.pressure.solve(rhs[self.free], x0=self._p0_free)
         p = np.zeros(mesh.n_points)
         p[self.free] = self._p0_free
         # consistent outlet fluxes: the residual of the discrete continuity equation at the outlet nodes
-        q0 = self.out_share @ (rhs[self.p_dirichlet] - system.k_out @ p)
+        q0 = self.out_share @ (rhs[self.p_dirichlet] - self._k_out @ p)
         # 3. correction, then outlet pressures that impose the split
         asm.lumped_gradient(tets, self.grads, self.volumes, p, self._gp)
         u = ustar - (dt / self.mass)[:, None] * self._gp
         u[self.u_dirichlet] = ustar[self.u_dirichlet]
         c = self._outlet_pressures(q0)
-        u += dt * np.tensordot(c, system.s, axes=1)
-        p += c @ system.phi
+        u += dt * np.tensordot(c, self.s, axes=1)
+        p += c @ self.phi
         if self.turbulence is not None:
             self.nut_hat = self.turbulence.step(self.nut_hat, u, dt, nu_e)
         self.u, self.p, self.t = u, p, t1
         self.step_count += 1
-        return StepInfo(dt, cfl, self.inflow(u), q0 + system.flux_response @ c, self.outflows(u),
-                        system.solver.iterations)
+        return StepInfo(dt, cfl, self.inflow(u), q0 + self.flux_response @ c, self.outflows(u),
+                        self.pressure.iterations)
 
     def _outlet_pressures(self, q0: np.ndarray) -> np.ndarray:
         """Outlet pressures c (outlets,) for which outlets 0..N-2 carry ``split`` of the total consistent outflow
