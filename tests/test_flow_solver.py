@@ -115,6 +115,8 @@ def test_pressure_solvers_agree_and_the_implicit_matrix_bounds_every_step():
         assert np.linalg.norm(x[m] - x["cholesky"]) <= 1e-8 * np.linalg.norm(x["cholesky"])
     with pytest.raises(CarotidError, match="unknown pressure solver"):
         PressureSolver(sp.identity(3), "qr")
+    with pytest.raises(CarotidError, match="not positive definite"):  # e.g. a region without an outlet
+        PressureSolver(sp.diags([1.0, 0.0, 1.0]).tocsr(), "cholesky")
     # implicit viscosity: one pressure matrix for the run, its stabilisation time >= every step taken
     solver = CBSSolver(mesh, profile.velocity, NU, viscous="implicit")
     solver.reset()  # from rest: the longest steps

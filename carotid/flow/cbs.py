@@ -128,8 +128,12 @@ class PressureSolver:
             from cholespy import CholeskySolverD, MatrixType
 
             a = self.matrix
-            self._chol = CholeskySolverD(a.shape[0], a.indptr.astype(np.int32), a.indices.astype(np.int32),
-                                         a.data.astype(float), MatrixType.CSR)
+            try:
+                self._chol = CholeskySolverD(a.shape[0], a.indptr.astype(np.int32), a.indices.astype(np.int32),
+                                             a.data.astype(float), MatrixType.CSR)
+            except ValueError as error:  # CHOLMOD: "Matrix is not positive definite!"
+                raise CarotidError("the pressure matrix is not positive definite: part of the mesh is degenerate "
+                                   "or not connected to an outlet") from error
         elif method == "amg":
             import pyamg
 
