@@ -10,8 +10,10 @@ The seed is the voxel deepest inside ``aorta.nii.gz`` (largest Euclidean
 distance to its border, in mm), in world mm.  carotid's ``segment`` runs
 with a few parameter sets (``CONFIGS``): the defaults, a larger seed
 sphere, the set that worked best in the investigation reported in
-README.md, and the same with a window that keeps only the bright (true)
-lumen.  Every run is capped at ``MAX_ITERATIONS`` per stage so that a
+README.md, the same with a window that keeps only the bright (true)
+lumen, and the outer-wall stage (``carotid.segment.wall``: lumen,
+thrombosed false lumen and wall) after the best set, whose whole-vessel
+mask is then scored.  Every run is capped at ``MAX_ITERATIONS`` per stage so that a
 front that leaks into the heart cannot run for many minutes; whether it
 converged is reported.  GAC (settings in ``GAC``) runs from the same seed
 sphere as the best set, capped at ``GAC_STOP.max_iterations`` because it is
@@ -41,17 +43,23 @@ from carotid.io import Volume, read_image
 from carotid.segment import SegmentParameters, segment
 from carotid.segment.init import seed_levelset
 from carotid.segment.metrics import dice
+from carotid.segment.segmentation import keep_components
+from carotid.segment.wall import ball_closing, ball_opening
 
 DATA = Path("/work/shared/data/thoracic-cta-totalseg/models")
 TARGET_DICE = 0.85
 MAX_ITERATIONS = 1000
 BEST = {"seed_radius_mm": 10.0, "sigma_mm": 2.0, "potential_scale": 0.3, "hu_low": 100.0, "hu_high": 700.0,
         "kernel_radius_mm": 5.0, "alpha": 0.45, "refine_radius_mm": 0.0}
+WALL = {**BEST, "hu_low": 50.0, "wall": True}
+MORPHOLOGY_MM = [(0.0, 6.0), (6.0, 6.0), (6.0, 7.5), (9.0, 6.0), (9.0, 7.5), (9.0, 9.0), (12.0, 9.0)]
 CONFIGS = {
     "defaults": {},
     "seed_radius_10mm": {"seed_radius_mm": 10.0},
     "best_found": BEST,
     "best_found_true_lumen_window": {**BEST, "hu_low": 200.0, "hu_high": 800.0},
+    "outer_wall": WALL,
+    "outer_wall_level_150": {**WALL, "wall_hu_high": 150.0},
 }
 QUICK_CONFIGS = ("best_found",)
 GAC = GacSetting("sigmoid", 1.5, -10.0, 50.0, 1.0, 0.2, 3.0)
@@ -113,14 +121,34 @@ def overlap(mask: np.ndarray, data: dict) -> dict:
 
 
 def run_config(data: dict, seed_xyz: np.ndarray, overrides: dict) -> dict:
-    """carotid's ``segment`` with ``SegmentParameters(**overrides)`` (iterations capped), scored."""
+    """carotid's ``segment`` with ``SegmentParameters(**overrides)`` (iterations capped), scored.
+
+    With the outer-wall stage on, the whole-vessel mask is scored, the lumen's figures go under "lumen",
+    and Dice after closing and opening that mask by balls (``MORPHOLOGY_MM``) under "morphology".
+    """
     params = SegmentParameters(**{"max_iterations": MAX_ITERATIONS, **overrides})
     try:
         result, seconds = timed(segment, data["ct"], seeds_xyz=[seed_xyz], params=params)
     except CarotidError as error:
         return {"overrides": overrides, "error": str(error), **overlap(np.zeros_like(data["aorta"]), data)}
-    return {"overrides": overrides, "seconds": seconds, "iterations": result.report["iterations"],
-            "converged": result.report["converged"], **overlap(result.mask.array > 0, data)}
+    lumen = overlap(result.mask.array > 0, data)
+    out = {"overrides": overrides, "seconds": seconds, "iterations": result.report["iterations"],
+           "converged": result.report["converged"]}
+    if result.wall is None:
+        return {**out, **lumen}
+    wall = result.wall.array > 0
+    return {**out, "scored": "outer wall", "wall_stage": result.report["wall"], **overlap(wall, data), "lumen": lumen,
+            "morphology": morphology_sweep(wall, data, data["ct"].world_to_index(seed_xyz))}
+
+
+def morphology_sweep(wall: np.ndarray, data: dict, seed_kji: np.ndarray) -> dict:
+    """Dice against the aorta mask of ``wall`` closed then opened by balls (radii in mm), seed's component kept."""
+    spacing = data["ct"].spacing_kji
+    out = {}
+    for close, open_ in MORPHOLOGY_MM:
+        mask = ball_opening(ball_closing(wall, close, spacing) if close else wall, open_, spacing)
+        out[f"close_{close:g}_open_{open_:g}"] = dice(keep_components(mask, seed_kji[None]), data["aorta"])
+    return out
 
 
 def run_gac_best_seed(data: dict, seed_xyz: np.ndarray) -> dict:

@@ -45,6 +45,10 @@ def _segment_parameters(args):
     }
     if args.hu_window:
         fields["hu_low"], fields["hu_high"] = args.hu_window
+    if args.wall:
+        fields["wall"] = True
+    if args.wall_morphology:
+        fields["wall_close_mm"], fields["wall_open_mm"] = args.wall_morphology
     return SegmentParameters(**{k: v for k, v in fields.items() if v is not None}).validate()
 
 
@@ -87,7 +91,8 @@ def cmd_segment(args) -> int:
                                    params=_segment_parameters(args))
     rep = result.report
     state = "converged" if rep["converged"] else "NOT converged (raise --max-iterations)"
-    print(f"segmentation written to {out}: lumen {rep['lumen_volume_mm3']:.0f} mm^3, "
+    wall = "" if rep["wall"] is None else f"whole vessel {rep['wall']['volume_mm3']:.0f} mm^3, "
+    print(f"segmentation written to {out}: lumen {rep['lumen_volume_mm3']:.0f} mm^3, {wall}"
           f"{sum(rep['iterations'])} iterations, {state}, {rep['seconds']['total_s']:.1f} s")
     return 0
 
@@ -184,6 +189,10 @@ def _add_segment_options(p: argparse.ArgumentParser) -> None:
                    help="curvature anisotropic diffusion iterations before the potential (default 0: off)")
     p.add_argument("--seed-radius", type=float, metavar="MM", help="radius of each seed sphere (default 1.5)")
     p.add_argument("--max-iterations", type=int, metavar="N", help="per stage (default 4000)")
+    p.add_argument("--wall", action="store_true",
+                   help="also segment the whole vessel (lumen, thrombus, wall): segmentation/wall_mask.nii.gz")
+    p.add_argument("--wall-morphology", nargs=2, type=float, metavar=("CLOSE", "OPEN"),
+                   help="radii in mm of the closing and opening of that whole-vessel mask (default 0 0: none)")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import resource
 import time
 from dataclasses import asdict, dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +22,7 @@ from carotid.segment.init import automatic_region, mask_levelset, seed_levelset
 from carotid.segment.levelset import evolve, signed_distance
 from carotid.segment.potential import gpf_potential
 from carotid.segment.preprocess import denoise, edge_stopping, window_hu
+from carotid.segment.wall import outer_wall
 
 
 @dataclass
@@ -64,6 +66,21 @@ class SegmentParameters:
         Convergence: fraction of front voxels allowed to change side per window.
     far_mm : float
         Distances beyond this are clamped in the output level set, in mm.
+    wall : bool
+        Also segment the whole vessel (lumen, non-enhancing thrombus, wall) from the lumen (``wall`` module).
+    wall_hu_low, wall_hu_high : float
+        HU window of the outer-wall stage, clipped: fat and lung at or below ``wall_hu_low``; thrombus and
+        wall at ``wall_hu_high``, which 0 measures (median HU of a ring 1.5-4.5 mm outside the lumen).
+    wall_contrast_hu : float
+        Outside the lumen, voxels above this HU count as dark in that stage (contrast-filled neighbours).
+    wall_alpha : float
+        Curvature weight of the outer-wall stage, 0 <= alpha < 1.
+    wall_kernel_mm : float
+        GPF kernel support of the outer-wall stage, mm: its capture range across thrombus.
+    wall_max_mm : float
+        Largest thickness of thrombus and wall beyond the lumen, mm.
+    wall_close_mm, wall_open_mm : float
+        Radii (mm) of the closing and opening of the outer-wall region by a ball, 0: none.
     """
 
     alpha: float = 0.2
@@ -83,6 +100,15 @@ class SegmentParameters:
     max_iterations: int = 4000
     tolerance: float = 2e-3
     far_mm: float = 20.0
+    wall: bool = False
+    wall_hu_low: float = 0.0
+    wall_hu_high: float = 0.0
+    wall_contrast_hu: float = 700.0
+    wall_alpha: float = 0.7
+    wall_kernel_mm: float = 5.0
+    wall_max_mm: float = 25.0
+    wall_close_mm: float = 0.0
+    wall_open_mm: float = 0.0
 
     def stages(self) -> list[tuple[float, float, float]]:
         """(kernel radius mm, pre-smoothing mm, alpha) of each evolution stage: capture, then refinement."""
@@ -105,6 +131,12 @@ class SegmentParameters:
             (0 < self.cfl < 1, "cfl must lie in (0, 1)"),
             (self.max_iterations > 0, "max_iterations must be positive"),
             (self.denoise_iterations >= 0, "denoise_iterations must not be negative"),
+            (self.wall_hu_low < self.wall_contrast_hu and (
+                self.wall_hu_high == 0 or self.wall_hu_low < self.wall_hu_high < self.wall_contrast_hu),
+             "wall_hu_low < wall_hu_high (0: measured) < wall_contrast_hu required"),
+            (0.0 <= self.wall_alpha < 1.0, "wall_alpha must lie in [0, 1)"),
+            (self.wall_max_mm > 0 and self.wall_kernel_mm > 0, "wall_max_mm and wall_kernel_mm must be positive"),
+            (self.wall_close_mm >= 0 and self.wall_open_mm >= 0, "wall_close_mm and wall_open_mm must not be negative"),
         ]
         for ok, message in checks:
             if not ok:
@@ -125,11 +157,14 @@ class Segmentation:
         uint8 lumen mask, 1 inside.
     report : dict
         Parameters, initialisation, iterations, convergence, seconds, volume.
+    wall : Volume or None
+        uint8 mask of the whole vessel (lumen, thrombus, wall), 1 inside, when ``params.wall`` asked for it.
     """
 
     levelset: Volume
     mask: Volume
     report: dict = field(default_factory=dict)
+    wall: Volume | None = None
 
 
 def check_image(volume: Volume) -> None:
@@ -158,7 +193,7 @@ def windowed_image(volume: Volume, params: SegmentParameters) -> np.ndarray:
     return window_hu(volume.array, params.hu_low, params.hu_high, params.hu_fold)
 
 
-def _keep_components(inside: np.ndarray, seeds_kji: np.ndarray | None) -> np.ndarray:
+def keep_components(inside: np.ndarray, seeds_kji: np.ndarray | None) -> np.ndarray:
     """The connected components holding a seed, or the largest one without seeds."""
     labels, n = ndimage.label(inside)
     if n == 0:
@@ -240,11 +275,19 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
     timings["evolution_s"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()
-    inside = _keep_components(phi < 0, seeds_kji)
+    inside = keep_components(phi < 0, seeds_kji)
     phi = np.where(inside, np.minimum(phi, -1e-3), np.maximum(phi, 0)).astype(np.float32)
     phi = signed_distance(phi, spacing, params.far_mm)
     mask = (phi < 0).astype(np.uint8)
     timings["distance_s"] = time.perf_counter() - t2
+
+    wall, wall_report = None, None
+    if params.wall:
+        speeds = partial(speed_fields, spacing_kji=spacing, radius_mm=params.wall_kernel_mm,
+                         sigma_mm=params.sigma_mm, params=params)
+        region, wall_report = outer_wall(volume, mask > 0, speeds, params, progress)
+        wall = keep_components(region, seeds_kji).astype(np.uint8)
+        wall_report["volume_mm3"] = float(wall.sum() * np.prod(spacing))
     timings["total_s"] = time.perf_counter() - t0
 
     report = {
@@ -256,11 +299,13 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
         "converged": all(converged),
         "seconds": timings,
         "lumen_volume_mm3": float(mask.sum() * np.prod(spacing)),
+        "wall": wall_report,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "image": {"shape_kji": list(volume.array.shape), "spacing_mm": list(volume.spacing),
                   "origin_mm": list(volume.origin)},
     }
-    return Segmentation(volume.with_array(phi), volume.with_array(mask), report)
+    return Segmentation(volume.with_array(phi), volume.with_array(mask), report,
+                        None if wall is None else volume.with_array(wall))
 
 
 @dataclass
@@ -294,10 +339,12 @@ def run_stage(case_dir: Path, params: dict, inputs: list[Path]) -> None:
 
 
 def write_segmentation(result: Segmentation, case_dir: str | Path) -> Path:
-    """Write ``levelset.nii.gz``, ``mask.nii.gz`` and ``report.json`` to ``CASE_DIR/segmentation`` atomically."""
+    """Write ``levelset.nii.gz``, ``mask.nii.gz``, ``report.json`` (and ``wall_mask.nii.gz``) atomically."""
     out = Path(case_dir) / "segmentation"
     with atomic_dir(out) as tmp:
         write_image(result.levelset, tmp / "levelset.nii.gz")
         write_image(result.mask, tmp / "mask.nii.gz")
+        if result.wall is not None:
+            write_image(result.wall, tmp / "wall_mask.nii.gz")
         write_json(result.report, tmp / "report.json")
     return out

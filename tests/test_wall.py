@@ -1,0 +1,106 @@
+"""Outer-wall stage: a thrombosed vessel phantom with an eccentric lumen, a contrast-filled vein and a side branch."""
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from carotid.errors import CarotidError
+from carotid.io import Volume, read_image
+from carotid.segment import SegmentParameters, segment, write_segmentation
+from carotid.segment.metrics import dice
+from carotid.segment.wall import ball_closing, ball_opening
+
+SPACING = (0.9, 0.9, 1.2)  # i, j, k in mm
+SHAPE = (40, 72, 72)  # k, j, i
+OUTER_R, LUMEN_R, LUMEN_SHIFT = 10.0, 4.0, 5.0  # mm
+VEIN_R, BRANCH_R = 4.0, 2.5  # mm
+
+
+def world_grid():
+    """(z, y, x) in mm of every voxel, origin at the centre of the volume's xy-plane."""
+    k, j, i = np.indices(SHAPE, dtype=np.float32)
+    return k * SPACING[2], (j - SHAPE[1] / 2) * SPACING[1], (i - SHAPE[2] / 2) * SPACING[0]
+
+
+def thrombosed_vessel(branch: bool = False, seed: int = 0) -> dict:
+    """CT (HU) of a vessel along z: a 10 mm thrombus (60 HU) around an eccentric 4 mm lumen (420 HU) in fat.
+
+    A vein full of contrast (1000 HU) touches the vessel on the -y side.  With ``branch``, a 2.5 mm artery
+    leaves the lumen along +x and runs 15 mm beyond the vessel.  Blur 0.8 mm, noise 15 HU.
+    """
+    z, y, x = world_grid()
+    outer = x ** 2 + y ** 2 <= OUTER_R ** 2
+    lumen = (x - LUMEN_SHIFT) ** 2 + y ** 2 <= LUMEN_R ** 2
+    vein = x ** 2 + (y + OUTER_R + VEIN_R) ** 2 <= VEIN_R ** 2
+    hu = np.full(SHAPE, -100.0, np.float32)
+    hu[outer] = 60.0
+    hu[vein] = 1000.0
+    arteries = lumen.copy()
+    if branch:
+        arteries |= (y ** 2 + (z - z.mean()) ** 2 <= BRANCH_R ** 2) & (x > 0) & (x < OUTER_R + 15.0)
+    hu[arteries] = 420.0
+    hu = ndimage.gaussian_filter(hu, 0.8 / np.array(SPACING[::-1]))
+    hu += np.random.default_rng(seed).normal(0.0, 15.0, SHAPE).astype(np.float32)
+    image = Volume(hu.astype(np.float32), spacing=SPACING)
+    centre = image.index_to_world(np.array([SHAPE[0] / 2, SHAPE[1] / 2, SHAPE[2] / 2 + LUMEN_SHIFT / SPACING[0]]))
+    return {"image": image, "outer": outer, "lumen": lumen, "vein": vein, "arteries": arteries, "seed": centre}
+
+
+PARAMS = dict(wall=True)
+
+
+def test_wall_stage_recovers_the_thrombus_and_leaves_the_lumen_alone(tmp_path):
+    case = thrombosed_vessel()
+    with_wall = segment(case["image"], seeds_xyz=[case["seed"]], params=SegmentParameters(**PARAMS))
+    lumen_only = segment(case["image"], seeds_xyz=[case["seed"]], params=SegmentParameters(**{**PARAMS, "wall": False}))
+    wall = with_wall.wall.array > 0
+    assert np.array_equal(with_wall.mask.array, lumen_only.mask.array) and lumen_only.wall is None
+    assert dice(with_wall.mask.array > 0, case["lumen"]) >= 0.95
+    assert dice(wall, case["outer"]) >= 0.9
+    assert with_wall.report["wall"]["thrombus_level_hu"] == pytest.approx(60.0, abs=25.0)
+    assert dice(lumen_only.mask.array > 0, case["outer"]) < 0.4
+    assert np.count_nonzero(wall & case["vein"]) < 0.01 * np.count_nonzero(case["outer"])  # contrast neighbour kept out
+    assert np.all(wall[with_wall.mask.array > 0])
+    report = with_wall.report["wall"]
+    assert report["converged"]
+    assert report["volume_mm3"] == pytest.approx(np.count_nonzero(wall) * np.prod(SPACING))
+    out = write_segmentation(with_wall, tmp_path)
+    assert np.array_equal(read_image(out / "wall_mask.nii.gz", dtype=np.uint8).array, with_wall.wall.array)
+
+
+def test_opening_cuts_a_side_branch_but_keeps_the_vessel():
+    case = thrombosed_vessel(branch=True, seed=1)
+    beyond = case["arteries"] & ~case["outer"]
+    results = {}
+    for radius in (0.0, 4.0):
+        params = SegmentParameters(**PARAMS, wall_open_mm=radius)
+        results[radius] = segment(case["image"], seeds_xyz=[case["seed"]], params=params).wall.array > 0
+    assert np.count_nonzero(results[0.0] & beyond) > 0.8 * np.count_nonzero(beyond)
+    assert np.count_nonzero(results[4.0] & beyond) < 0.1 * np.count_nonzero(beyond)
+    assert dice(results[4.0], case["outer"]) >= 0.9
+
+
+def test_ball_closing_and_opening_in_mm_on_anisotropic_voxels():
+    z, y, x = world_grid()
+    sphere = (z - 24.0) ** 2 + y ** 2 + x ** 2 <= 8.0 ** 2
+    rod = (y - 15.0) ** 2 + x ** 2 <= 2.0 ** 2
+    spacing = np.array(SPACING[::-1])
+    opened = ball_opening(sphere | rod, 3.0, spacing)
+    assert not np.any(opened & rod) and np.all(opened <= sphere | rod)  # no 3 mm ball fits in the 2 mm rod
+    assert dice(opened, sphere) > 0.98  # the 8 mm sphere holds one everywhere
+    slit = sphere & ~(np.abs(x) <= 1.0)  # a 2 mm cut through the sphere
+    closed = ball_closing(slit, 3.0, spacing)
+    assert np.all(closed >= slit) and np.all(closed[sphere & (np.abs(z - 24.0) < 4.0) & (np.abs(y) < 4.0)])
+
+
+def test_an_opening_wider_than_the_vessel_is_refused():
+    case = thrombosed_vessel()
+    with pytest.raises(CarotidError, match="wall_open_mm"):
+        segment(case["image"], seeds_xyz=[case["seed"]], params=SegmentParameters(**PARAMS, wall_open_mm=12.0))
+
+
+@pytest.mark.parametrize("bad", [{"wall_alpha": 1.2}, {"wall_hu_low": 800.0}, {"wall_contrast_hu": -10.0},
+                                 {"wall_max_mm": 0.0}, {"wall_kernel_mm": 0.0}, {"wall_open_mm": -1.0}])
+def test_bad_wall_parameters_are_refused(bad):
+    with pytest.raises(CarotidError, match="wall"):
+        SegmentParameters(**bad).validate()
