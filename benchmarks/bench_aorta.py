@@ -44,7 +44,7 @@ from carotid.segment import SegmentParameters, segment
 from carotid.segment.init import seed_levelset
 from carotid.segment.metrics import dice
 from carotid.segment.segmentation import keep_components
-from carotid.segment.wall import ball_closing, ball_opening
+from carotid.segment.wall import close_and_open
 
 DATA = Path("/work/shared/data/thoracic-cta-totalseg/models")
 TARGET_DICE = 0.85
@@ -146,8 +146,8 @@ def morphology_sweep(wall: np.ndarray, data: dict, seed_kji: np.ndarray) -> dict
     spacing = data["ct"].spacing_kji
     out = {}
     for close, open_ in MORPHOLOGY_MM:
-        mask = ball_opening(ball_closing(wall, close, spacing) if close else wall, open_, spacing)
-        out[f"close_{close:g}_open_{open_:g}"] = dice(keep_components(mask, seed_kji[None]), data["aorta"])
+        mask = keep_components(close_and_open(wall, close, open_, spacing), seed_kji[None])
+        out[f"close_{close:g}_open_{open_:g}"] = dice(mask, data["aorta"])
     return out
 
 

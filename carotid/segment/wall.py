@@ -92,6 +92,15 @@ def ball_opening(mask: np.ndarray, radius_mm: float, spacing_kji) -> np.ndarray:
     return (ndimage.distance_transform_edt(~centres, sampling=spacing_kji) <= radius_mm) & mask
 
 
+def close_and_open(mask: np.ndarray, close_mm: float, open_mm: float, spacing_kji) -> np.ndarray:
+    """``mask`` closed by a ball of ``close_mm``, then opened by one of ``open_mm`` (mm; 0 skips either step)."""
+    if close_mm > 0:
+        mask = ball_closing(mask, close_mm, spacing_kji)
+    if open_mm > 0:
+        mask = ball_opening(mask, open_mm, spacing_kji)
+    return mask
+
+
 def outer_wall(volume: Volume, lumen: np.ndarray, ghat_g, params, progress=None) -> tuple[np.ndarray, dict]:
     """The vessel's outer boundary grown from its lumen (module docstring).
 
@@ -127,14 +136,10 @@ def outer_wall(volume: Volume, lumen: np.ndarray, ghat_g, params, progress=None)
     result = evolve(mask_levelset(lumen, spacing), ghat, g, spacing, alpha=params.wall_alpha, cfl=params.cfl,
                     max_iterations=params.max_iterations, tolerance=params.tolerance, progress=progress)
     del ghat, g
-    wall = result.phi < 0
-    if params.wall_close_mm > 0:
-        wall = ball_closing(wall, params.wall_close_mm, spacing)
-    if params.wall_open_mm > 0:
-        wall = ball_opening(wall, params.wall_open_mm, spacing)
-        if not wall.any():
-            raise CarotidError(f"no ball of radius wall_open_mm = {params.wall_open_mm:g} mm fits in the vessel: "
-                               "choose a smaller one")
+    wall = close_and_open(result.phi < 0, params.wall_close_mm, params.wall_open_mm, spacing)
+    if params.wall_open_mm > 0 and not wall.any():
+        raise CarotidError(f"no ball of radius wall_open_mm = {params.wall_open_mm:g} mm fits in the vessel: "
+                           "choose a smaller one")
     report = {"thrombus_level_hu": level, "iterations": result.iterations, "converged": result.converged,
               "seconds": time.perf_counter() - t0}
     return wall, report
