@@ -97,6 +97,12 @@ def check_split(split, n_outlets: int) -> np.ndarray:
     return s
 
 
+def jacobi_preconditioner(diagonal: np.ndarray) -> spla.LinearOperator:
+    """Multiplication by the inverse of ``diagonal`` (k,): the Jacobi preconditioner of a matrix with that diagonal."""
+    inverse = 1.0 / diagonal
+    return spla.LinearOperator((len(inverse), len(inverse)), matvec=lambda x: inverse * x, dtype=float)
+
+
 class PressureSolver:
     """Repeated solves with one SPD matrix: sparse Cholesky, pyamg SA-preconditioned CG, LU, or Jacobi-CG.
 
@@ -141,8 +147,7 @@ class PressureSolver:
         elif method == "lu":
             self._lu = spla.splu(self.matrix.tocsc())
         elif method == "jacobi":
-            inv_diag = 1.0 / self.matrix.diagonal()
-            self._jacobi = spla.LinearOperator(self.matrix.shape, matvec=lambda x: inv_diag * x, dtype=float)
+            self._jacobi = jacobi_preconditioner(self.matrix.diagonal())
         else:
             raise CarotidError(f"unknown pressure solver {method!r} ({', '.join(self.METHODS)})")
 
@@ -270,7 +275,6 @@ class CBSSolver:
         self._div = np.zeros(n)
         self._proj = np.zeros(n)
         self._gp = np.zeros((n, 3))
-        self._speed = np.zeros(len(mesh.tets))
         self._rate = np.zeros(len(mesh.tets))
         self.reset()
 
@@ -369,8 +373,7 @@ class CBSSolver:
         shift = self.mass[self._u_free] / dt
         kv = self._kv_ff
         a = spla.LinearOperator(kv.shape, matvec=lambda x: kv @ x + shift * x, dtype=float)
-        inv_diag = 1.0 / (self._kv_diag + shift)
-        jacobi = spla.LinearOperator(kv.shape, matvec=lambda x: inv_diag * x, dtype=float)
+        jacobi = jacobi_preconditioner(self._kv_diag + shift)
         for c in range(3):
             self._du_free[:, c], info = spla.cg(a, rhs[:, c], x0=self._du_free[:, c], rtol=self._rtol,
                                                 maxiter=5000, M=jacobi)
@@ -483,8 +486,8 @@ class CBSSolver:
         if self.viscous == "implicit":
             asm.element_convective_rate(self.mesh.tets, self.grads, self.u, self._rate)
         else:
-            asm.element_speed(self.mesh.tets, self.u, self._speed)
-            self._rate[:] = self._speed / self.h
+            asm.element_speed(self.mesh.tets, self.u, self._rate)
+            self._rate /= self.h
         nu_dt = nu_e if self.turbulence is None else np.maximum(nu_e, self.turbulence.diffusivity_bound(
             self.nut_hat, self.mesh.tets))
         if self.viscous == "implicit" and self.turbulence is None:
