@@ -13,7 +13,9 @@ sphere, the set that worked best in the investigation reported in
 README.md, the same with a window that keeps only the bright (true)
 lumen, and the outer-wall stage (``carotid.segment.wall``: lumen,
 thrombosed false lumen and wall) after the best set, whose whole-vessel
-mask is then scored.  Every run is capped at ``MAX_ITERATIONS`` per stage so that a
+mask is then scored: with the thrombus level measured locally (the default),
+as one median, or set by hand, and with the trunk step (the aorta without its
+branches and leaks) at a few local-level scales.  Every run is capped at ``MAX_ITERATIONS`` per stage so that a
 front that leaks into the heart cannot run for many minutes; whether it
 converged is reported.  GAC (settings in ``GAC``) runs from the same seed
 sphere as the best set, capped at ``GAC_STOP.max_iterations`` because it is
@@ -44,7 +46,7 @@ from carotid.segment import SegmentParameters, segment
 from carotid.segment.init import seed_levelset
 from carotid.segment.metrics import dice
 from carotid.segment.segmentation import keep_components
-from carotid.segment.wall import close_and_open
+from carotid.segment.wall import close_and_open, trunk
 
 DATA = Path("/work/shared/data/thoracic-cta-totalseg/models")
 TARGET_DICE = 0.85
@@ -53,13 +55,19 @@ BEST = {"seed_radius_mm": 10.0, "sigma_mm": 2.0, "potential_scale": 0.3, "hu_low
         "kernel_radius_mm": 5.0, "alpha": 0.45, "refine_radius_mm": 0.0}
 WALL = {**BEST, "hu_low": 50.0, "wall": True}
 MORPHOLOGY_MM = [(0.0, 6.0), (6.0, 6.0), (6.0, 7.5), (9.0, 6.0), (9.0, 7.5), (9.0, 9.0), (12.0, 9.0)]
+TRUNK_MM = 5.0
+TRUNK_SWEEP_MM = [3.0, 4.0, 5.0, 6.0, 8.0]
 CONFIGS = {
     "defaults": {},
     "seed_radius_10mm": {"seed_radius_mm": 10.0},
     "best_found": BEST,
     "best_found_true_lumen_window": {**BEST, "hu_low": 200.0, "hu_high": 800.0},
     "outer_wall": WALL,
+    "outer_wall_one_level": {**WALL, "wall_level_mm": 0.0},
     "outer_wall_level_150": {**WALL, "wall_hu_high": 150.0},
+    "outer_wall_trunk": {**WALL, "wall_trunk_mm": TRUNK_MM},
+    "outer_wall_trunk_level_10mm": {**WALL, "wall_trunk_mm": TRUNK_MM, "wall_level_mm": 10.0},
+    "outer_wall_trunk_level_25mm": {**WALL, "wall_trunk_mm": TRUNK_MM, "wall_level_mm": 25.0},
 }
 QUICK_CONFIGS = ("best_found",)
 GAC = GacSetting("sigmoid", 1.5, -10.0, 50.0, 1.0, 0.2, 3.0)
@@ -123,8 +131,9 @@ def overlap(mask: np.ndarray, data: dict) -> dict:
 def run_config(data: dict, seed_xyz: np.ndarray, overrides: dict) -> dict:
     """carotid's ``segment`` with ``SegmentParameters(**overrides)`` (iterations capped), scored.
 
-    With the outer-wall stage on, the whole-vessel mask is scored, the lumen's figures go under "lumen",
-    and Dice after closing and opening that mask by balls (``MORPHOLOGY_MM``) under "morphology".
+    With the outer-wall stage on, the whole-vessel mask is scored, the lumen's figures go under "lumen";
+    without the trunk step, Dice after closing and opening that mask by balls (``MORPHOLOGY_MM``) goes under
+    "morphology" and Dice after the trunk step at other margins (``TRUNK_SWEEP_MM``) under "trunk".
     """
     params = SegmentParameters(**{"max_iterations": MAX_ITERATIONS, **overrides})
     try:
@@ -137,8 +146,11 @@ def run_config(data: dict, seed_xyz: np.ndarray, overrides: dict) -> dict:
     if result.wall is None:
         return {**out, **lumen}
     wall = result.wall.array > 0
-    return {**out, "scored": "outer wall", "wall_stage": result.report["wall"], **overlap(wall, data), "lumen": lumen,
-            "morphology": morphology_sweep(wall, data, data["ct"].world_to_index(seed_xyz))}
+    out = {**out, "scored": "outer wall", "wall_stage": result.report["wall"], **overlap(wall, data), "lumen": lumen}
+    if params.wall_trunk_mm == 0:
+        seed_kji = data["ct"].world_to_index(seed_xyz)[None]
+        out.update(morphology=morphology_sweep(wall, data, seed_kji), trunk=trunk_sweep(wall, data, seed_kji))
+    return out
 
 
 def morphology_sweep(wall: np.ndarray, data: dict, seed_kji: np.ndarray) -> dict:
@@ -149,6 +161,13 @@ def morphology_sweep(wall: np.ndarray, data: dict, seed_kji: np.ndarray) -> dict
         mask = keep_components(close_and_open(wall, close, open_, spacing), seed_kji[None])
         out[f"close_{close:g}_open_{open_:g}"] = dice(mask, data["aorta"])
     return out
+
+
+def trunk_sweep(wall: np.ndarray, data: dict, seed_kji: np.ndarray) -> dict:
+    """Dice against the aorta mask of the trunk of ``wall`` at each margin of ``TRUNK_SWEEP_MM``, seed's component."""
+    spacing = data["ct"].spacing_kji
+    return {f"margin_{margin:g}": dice(keep_components(trunk(wall, spacing, margin), seed_kji), data["aorta"])
+            for margin in TRUNK_SWEEP_MM}
 
 
 def run_gac_best_seed(data: dict, seed_xyz: np.ndarray) -> dict:

@@ -42,6 +42,7 @@ def _segment_parameters(args):
         "alpha": args.alpha, "kernel_radius_mm": args.kernel_radius, "sigma_mm": args.sigma,
         "refine_radius_mm": args.refine_radius, "denoise_iterations": args.denoise,
         "seed_radius_mm": args.seed_radius, "max_iterations": args.max_iterations,
+        "wall_trunk_mm": args.wall_trunk,
     }
     if args.hu_window:
         fields["hu_low"], fields["hu_high"] = args.hu_window
@@ -193,6 +194,9 @@ def _add_segment_options(p: argparse.ArgumentParser) -> None:
                    help="also segment the whole vessel (lumen, thrombus, wall): segmentation/wall_mask.nii.gz")
     p.add_argument("--wall-morphology", nargs=2, type=float, metavar=("CLOSE", "OPEN"),
                    help="radii in mm of the closing and opening of that whole-vessel mask (default 0 0: none)")
+    p.add_argument("--wall-trunk", type=float, metavar="MM",
+                   help="keep only the trunk of that mask (e.g. the aorta without its branches): within MM of the "
+                        "balls along its main axis (default 0: off)")
 
 
 def build_parser() -> argparse.ArgumentParser:

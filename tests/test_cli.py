@@ -46,12 +46,14 @@ def test_segment_options_reach_the_parameters(phantom_dir, tmp_path, capsys):
     case = tmp_path / "case"
     code, _, _ = run_and_capture(capsys, ["segment", phantom_dir / "image.nii.gz", "-o", case, "--alpha", "0.25",
                                           "--hu-window", "-50", "600", "--refine-radius", "0", "--wall",
-                                          "--wall-morphology", "1", "0.5", "--max-iterations", "200"])
+                                          "--wall-morphology", "1", "0.5", "--wall-trunk", "4",
+                                          "--max-iterations", "200"])
     assert code == 0
     params = json.loads((case / "segmentation" / "report.json").read_text())["parameters"]
     assert params["alpha"] == 0.25 and params["hu_low"] == -50 and params["hu_high"] == 600
     assert params["refine_radius_mm"] == 0 and params["max_iterations"] == 200
     assert params["wall"] and params["wall_close_mm"] == 1 and params["wall_open_mm"] == 0.5
+    assert params["wall_trunk_mm"] == 4
     assert (case / "segmentation" / "wall_mask.nii.gz").exists()
 
 

@@ -8,7 +8,7 @@ from carotid.errors import CarotidError
 from carotid.io import Volume, read_image
 from carotid.segment import SegmentParameters, segment, write_segmentation
 from carotid.segment.metrics import dice
-from carotid.segment.wall import ball_closing, ball_opening
+from carotid.segment.wall import ball_closing, ball_opening, trunk, trunk_axis, wall_level
 
 SPACING = (0.9, 0.9, 1.2)  # i, j, k in mm
 SHAPE = (40, 72, 72)  # k, j, i
@@ -68,16 +68,66 @@ def test_wall_stage_recovers_the_thrombus_and_leaves_the_lumen_alone(tmp_path):
     assert np.array_equal(read_image(out / "wall_mask.nii.gz", dtype=np.uint8).array, with_wall.wall.array)
 
 
-def test_opening_cuts_a_side_branch_but_keeps_the_vessel():
+@pytest.mark.parametrize("cut", [{"wall_open_mm": 4.0}, {"wall_trunk_mm": 3.0}])
+def test_opening_or_trunk_cuts_a_side_branch_but_keeps_the_vessel(cut):
     case = thrombosed_vessel(branch=True, seed=1)
     beyond = case["arteries"] & ~case["outer"]
     results = {}
-    for radius in (0.0, 4.0):
-        params = SegmentParameters(**PARAMS, wall_open_mm=radius)
-        results[radius] = segment(case["image"], seeds_xyz=[case["seed"]], params=params).wall.array > 0
-    assert np.count_nonzero(results[0.0] & beyond) > 0.8 * np.count_nonzero(beyond)
-    assert np.count_nonzero(results[4.0] & beyond) < 0.1 * np.count_nonzero(beyond)
-    assert dice(results[4.0], case["outer"]) >= 0.9
+    for name, extra in (("plain", {}), ("cut", cut)):
+        params = SegmentParameters(**PARAMS, **extra)
+        results[name] = segment(case["image"], seeds_xyz=[case["seed"]], params=params).wall.array > 0
+    assert np.count_nonzero(results["plain"] & beyond) > 0.8 * np.count_nonzero(beyond)
+    assert np.count_nonzero(results["cut"] & beyond) < 0.1 * np.count_nonzero(beyond)
+    assert dice(results["cut"], case["outer"]) >= 0.9
+
+
+def test_local_level_follows_the_thrombus_along_the_vessel():
+    """Thrombus of 60 HU in the lower half and 150 HU (partly enhancing) in the upper: each half gets its own."""
+    z, y, x = world_grid()
+    radius = np.hypot(x, y)
+    sample = (radius > 6.0) & (radius <= 9.0)
+    upper = z >= z.mean()
+    hu = np.where(upper, 150.0, 60.0) + np.random.default_rng(3).normal(0.0, 15.0, SHAPE)
+    hu = hu.astype(np.float32)
+    level = wall_level(hu, sample, 5.0, SPACING[::-1], low=0.0)
+    far = np.abs(z - z.mean()) > 15.0  # three Gaussians from the change
+    assert level.shape == SHAPE and level.dtype == np.float32
+    assert np.abs(level[sample & far & ~upper] - 60.0).max() < 10.0
+    assert np.abs(level[sample & far & upper] - 150.0).max() < 10.0
+    assert float(wall_level(hu, sample, 0.0, SPACING[::-1], low=0.0)) == pytest.approx(np.median(hu[sample]))
+    assert float(wall_level(hu, np.zeros(SHAPE, bool), 5.0, SPACING[::-1], low=0.0)) == 100.0  # nothing sampled
+
+
+def arch_with_branch_and_leak():
+    """An aortic arch in the x-z plane: two 40 mm legs (radius 8 mm) joined by a half circle of 25 mm, a 100 mm
+    branch (radius 3 mm) leaving its top, a leak (a 10 mm ball) bulging from one leg.  Voxels 0.8 x 0.8 x 1.2 mm.
+
+    Returns the mask, its parts (trunk, branch, leak) and the spacing in array order.
+    """
+    spacing = np.array([1.2, 0.8, 0.8])
+    shape = (150, 30, 130)
+    k, j, i = np.indices(shape, dtype=np.float32)
+    z, y, x = k * spacing[0], (j - shape[1] / 2) * spacing[1], (i - shape[2] / 2) * spacing[2]
+    legs = (z <= 40.0) & (np.minimum(np.hypot(x - 25.0, y), np.hypot(x + 25.0, y)) <= 8.0)
+    arch = (z > 40.0) & (np.hypot(np.hypot(x, z - 40.0) - 25.0, y) <= 8.0)
+    branch = (np.hypot(x, y) <= 3.0) & (z > 60.0) & (z <= 165.0)
+    leak = np.hypot(np.hypot(x - 40.0, y), z - 20.0) <= 10.0
+    trunk_part = legs | arch
+    return trunk_part | branch | leak, trunk_part, branch & ~trunk_part, leak & ~trunk_part, spacing
+
+
+def test_trunk_follows_the_thick_axis_not_the_longest():
+    mask, trunk_part, branch, leak, spacing = arch_with_branch_and_leak()
+    points, radii = trunk_axis(mask, spacing)
+    ends = points[[0, -1]] * spacing
+    assert np.all(ends[:, 0] < 15.0)  # both ends in the legs (z < 40 mm), neither at the branch's far end
+    assert np.all(np.linalg.norm(np.diff(points, axis=0), axis=1) < 2.0)  # one connected voxel path
+    assert np.median(radii) == pytest.approx(8.0, abs=1.0)
+    kept = trunk(mask, spacing, 2.0)
+    assert np.all(kept <= mask)
+    assert np.count_nonzero(kept & trunk_part) > 0.98 * np.count_nonzero(trunk_part)
+    assert np.count_nonzero(kept & branch) < 0.1 * np.count_nonzero(branch)
+    assert np.count_nonzero(kept & leak) < 0.4 * np.count_nonzero(leak)
 
 
 def test_ball_closing_and_opening_in_mm_on_anisotropic_voxels():
@@ -100,7 +150,8 @@ def test_an_opening_wider_than_the_vessel_is_refused():
 
 
 @pytest.mark.parametrize("bad", [{"wall_alpha": 1.2}, {"wall_hu_low": 800.0}, {"wall_contrast_hu": -10.0},
-                                 {"wall_max_mm": 0.0}, {"wall_kernel_mm": 0.0}, {"wall_open_mm": -1.0}])
+                                 {"wall_max_mm": 0.0}, {"wall_kernel_mm": 0.0}, {"wall_open_mm": -1.0},
+                                 {"wall_level_mm": -1.0}, {"wall_trunk_mm": -2.0}])
 def test_bad_wall_parameters_are_refused(bad):
     with pytest.raises(CarotidError, match="wall"):
         SegmentParameters(**bad).validate()

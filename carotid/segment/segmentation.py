@@ -22,7 +22,7 @@ from carotid.segment.init import automatic_region, mask_levelset, seed_levelset
 from carotid.segment.levelset import evolve, signed_distance
 from carotid.segment.potential import gpf_potential
 from carotid.segment.preprocess import denoise, edge_stopping, window_hu
-from carotid.segment.wall import outer_wall
+from carotid.segment.wall import outer_wall, trunk
 
 
 @dataclass
@@ -70,7 +70,9 @@ class SegmentParameters:
         Also segment the whole vessel (lumen, non-enhancing thrombus, wall) from the lumen (``wall`` module).
     wall_hu_low, wall_hu_high : float
         HU window of the outer-wall stage, clipped: fat and lung at or below ``wall_hu_low``; thrombus and
-        wall at ``wall_hu_high``, which 0 measures (median HU of a ring 1.5-4.5 mm outside the lumen).
+        wall at ``wall_hu_high``, which 0 measures in a ring 1.5-4.5 mm outside the lumen.
+    wall_level_mm : float
+        Gaussian (mm) over which that level is measured locally; 0: one level, the ring's median.
     wall_contrast_hu : float
         Outside the lumen, voxels above this HU count as dark in that stage (contrast-filled neighbours).
     wall_alpha : float
@@ -81,6 +83,9 @@ class SegmentParameters:
         Largest thickness of thrombus and wall beyond the lumen, mm.
     wall_close_mm, wall_open_mm : float
         Radii (mm) of the closing and opening of the outer-wall region by a ball, 0: none.
+    wall_trunk_mm : float
+        Keep only the vessel's trunk: what lies within this margin (mm) of the balls along its main axis
+        (``wall.trunk``; for the aorta, without its branches).  0: off.
     """
 
     alpha: float = 0.2
@@ -103,12 +108,14 @@ class SegmentParameters:
     wall: bool = False
     wall_hu_low: float = 0.0
     wall_hu_high: float = 0.0
+    wall_level_mm: float = 15.0
     wall_contrast_hu: float = 700.0
     wall_alpha: float = 0.7
     wall_kernel_mm: float = 5.0
     wall_max_mm: float = 25.0
     wall_close_mm: float = 0.0
     wall_open_mm: float = 0.0
+    wall_trunk_mm: float = 0.0
 
     def stages(self) -> list[tuple[float, float, float]]:
         """(kernel radius mm, pre-smoothing mm, alpha) of each evolution stage: capture, then refinement."""
@@ -137,6 +144,8 @@ class SegmentParameters:
             (0.0 <= self.wall_alpha < 1.0, "wall_alpha must lie in [0, 1)"),
             (self.wall_max_mm > 0 and self.wall_kernel_mm > 0, "wall_max_mm and wall_kernel_mm must be positive"),
             (self.wall_close_mm >= 0 and self.wall_open_mm >= 0, "wall_close_mm and wall_open_mm must not be negative"),
+            (self.wall_level_mm >= 0 and self.wall_trunk_mm >= 0,
+             "wall_level_mm and wall_trunk_mm must not be negative"),
         ]
         for ok, message in checks:
             if not ok:
@@ -286,7 +295,12 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
         speeds = partial(speed_fields, spacing_kji=spacing, radius_mm=params.wall_kernel_mm,
                          sigma_mm=params.sigma_mm, params=params)
         region, wall_report = outer_wall(volume, mask > 0, speeds, params, progress)
-        wall = keep_components(region, seeds_kji).astype(np.uint8)
+        wall = keep_components(region, seeds_kji)
+        if params.wall_trunk_mm > 0:
+            t3 = time.perf_counter()
+            wall = keep_components(trunk(wall, spacing, params.wall_trunk_mm), seeds_kji)
+            wall_report["trunk_seconds"] = time.perf_counter() - t3
+        wall = wall.astype(np.uint8)
         wall_report["volume_mm3"] = float(wall.sum() * np.prod(spacing))
     timings["total_s"] = time.perf_counter() - t0
 
