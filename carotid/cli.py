@@ -46,7 +46,7 @@ def _segment_parameters(args):
     }
     if args.hu_window:
         fields["hu_low"], fields["hu_high"] = args.hu_window
-    if args.wall:
+    if args.wall or args.wall_morphology or args.wall_trunk:
         fields["wall"] = True
     if args.wall_morphology:
         fields["wall_close_mm"], fields["wall_open_mm"] = args.wall_morphology
@@ -193,10 +193,11 @@ def _add_segment_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--wall", action="store_true",
                    help="also segment the whole vessel (lumen, thrombus, wall): segmentation/wall_mask.nii.gz")
     p.add_argument("--wall-morphology", nargs=2, type=float, metavar=("CLOSE", "OPEN"),
-                   help="radii in mm of the closing and opening of that whole-vessel mask (default 0 0: none)")
+                   help="radii in mm of the closing and opening of that whole-vessel mask (default 0 0: none; "
+                        "implies --wall)")
     p.add_argument("--wall-trunk", type=float, metavar="MM",
                    help="keep only the trunk of that mask (e.g. the aorta without its branches): within MM of the "
-                        "balls along its main axis (default 0: off)")
+                        "balls along its main axis (default 0: off; implies --wall)")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -45,7 +45,7 @@ def test_segment_writes_the_case_folder(phantom_dir, tmp_path, capsys):
 def test_segment_options_reach_the_parameters(phantom_dir, tmp_path, capsys):
     case = tmp_path / "case"
     code, _, _ = run_and_capture(capsys, ["segment", phantom_dir / "image.nii.gz", "-o", case, "--alpha", "0.25",
-                                          "--hu-window", "-50", "600", "--refine-radius", "0", "--wall",
+                                          "--hu-window", "-50", "600", "--refine-radius", "0",
                                           "--wall-morphology", "1", "0.5", "--wall-trunk", "4",
                                           "--max-iterations", "200"])
     assert code == 0
