@@ -151,7 +151,8 @@ def test_an_opening_wider_than_the_vessel_is_refused():
 
 @pytest.mark.parametrize("bad", [{"wall_alpha": 1.2}, {"wall_hu_low": 800.0}, {"wall_contrast_hu": -10.0},
                                  {"wall_max_mm": 0.0}, {"wall_kernel_mm": 0.0}, {"wall_open_mm": -1.0},
-                                 {"wall_level_mm": -1.0}, {"wall_trunk_mm": -2.0}])
+                                 {"wall_level_mm": -1.0}, {"wall_trunk_mm": -2.0},
+                                 {"wall": False, "wall_trunk_mm": 5.0}, {"wall": False, "wall_open_mm": 2.0}])
 def test_bad_wall_parameters_are_refused(bad):
     with pytest.raises(CarotidError, match="wall"):
         SegmentParameters(**bad).validate()

@@ -146,6 +146,8 @@ class SegmentParameters:
             (self.wall_close_mm >= 0 and self.wall_open_mm >= 0, "wall_close_mm and wall_open_mm must not be negative"),
             (self.wall_level_mm >= 0 and self.wall_trunk_mm >= 0,
              "wall_level_mm and wall_trunk_mm must not be negative"),
+            (self.wall or not (self.wall_close_mm or self.wall_open_mm or self.wall_trunk_mm),
+             "wall_close_mm, wall_open_mm and wall_trunk_mm act on the outer-wall stage: set wall = true"),
         ]
         for ok, message in checks:
             if not ok:

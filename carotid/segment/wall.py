@@ -184,8 +184,7 @@ def outer_wall(volume: Volume, lumen: np.ndarray, ghat_g, params, progress=None)
         level = np.float32(params.wall_hu_high)
     else:
         level = wall_level(volume.array, sample, params.wall_level_mm, spacing, low)
-    at_ring = np.broadcast_to(level, sample.shape)[sample]
-    level_range = np.percentile(at_ring, [5, 50, 95]) if at_ring.size else np.full(3, float(level.flat[0]))
+    level_range = np.percentile(level[sample] if level.ndim else level.reshape(1), [5, 50, 95])
     ghat, g = ghat_g(wall_image(volume.array, lumen, low, level, contrast))
     ghat[distance > params.wall_max_mm] = 1.0
     del distance, sample, level
