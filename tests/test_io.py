@@ -5,7 +5,7 @@ import pytest
 import SimpleITK as sitk
 
 from carotid.errors import CarotidError
-from carotid.io import Volume, read_image, write_image, write_json
+from carotid.io import Volume, atomic_dir, atomic_path, read_image, remove_leftovers, write_image, write_json
 
 DIRECTION = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # rotated 90 degrees about z
 
@@ -92,6 +92,22 @@ def test_failed_write_leaves_previous_file(tmp_path):
         write_json({"a": object()}, path)
     assert path.read_text().strip().startswith("{") and '"a": 1' in path.read_text()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["x.json"]
+
+
+def test_leftovers_of_interrupted_writes_are_removed_and_nothing_else(tmp_path):
+    write_json({"a": 1}, tmp_path / "x.json")
+    (tmp_path / "seg").mkdir()
+    user_files = [".git", ".DS_Store", ".notes.txt", "x.json", "seg"]
+    for name in user_files[:3]:
+        (tmp_path / name).write_text("mine")
+    # Entered and never left (kept referenced, so not closed either), as when the process is killed mid-write.
+    writers = [atomic_path(tmp_path / "levelset.nii.gz"), atomic_dir(tmp_path / "seg")]
+    file_tmp, folder_tmp = (writer.__enter__() for writer in writers)
+    (folder_tmp / "mask.nii.gz").write_bytes(b"half")
+    assert file_tmp.exists() and folder_tmp.exists()
+    assert sorted(remove_leftovers(tmp_path)) == sorted([file_tmp, folder_tmp])
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(user_files)
+    assert remove_leftovers(tmp_path / "absent") == []
 
 
 def test_nan_voxels_in_nifti_are_reported(tmp_path):

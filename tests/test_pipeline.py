@@ -82,8 +82,26 @@ def test_run_skips_unchanged_stages_and_reruns_changed_ones(small_image, tmp_pat
     assert report["parameters"]["alpha"] == 0.25
 
 
-def _start_run(image, case, config_path):
-    return subprocess.Popen([sys.executable, "-m", "carotid", "run", str(image), "-o", str(case), "--config",
+# ``carotid run`` whose segmentation hangs once its first image file is written, after touching argv[1]:
+# a kill then lands mid-write at a known moment, however fast the machine.
+_HANG_IN_SEGMENTATION_WRITE = """
+import pathlib, sys, time
+import carotid.segment.segmentation as segmentation
+from carotid.cli import main
+write = segmentation.write_image
+def write_then_hang(image, path):
+    write(image, path)
+    pathlib.Path(sys.argv[1]).touch()
+    time.sleep(600)
+segmentation.write_image = write_then_hang
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+def _start_run(image, case, config_path, hang_marker=None):
+    """``carotid run`` in its own process group; with ``hang_marker``, hanging mid-write of the segmentation."""
+    command = ["-m", "carotid"] if hang_marker is None else ["-c", _HANG_IN_SEGMENTATION_WRITE, str(hang_marker)]
+    return subprocess.Popen([sys.executable, *command, "run", str(image), "-o", str(case), "--config",
                              str(config_path)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             start_new_session=True)
 
@@ -119,18 +137,21 @@ def test_killed_run_resumes_to_the_same_result(small_image, tmp_path):
     config_path.write_text(Config(TOY).to_toml())
     reference = tmp_path / "reference"
     run(small_image, reference, Config.from_toml(config_path), log=lambda line: None)
-    case = tmp_path / "killed"
-    moments = {  # name -> (condition on the case folder at which the run is killed, stage it interrupts)
-        "during segmentation": (lambda: (case / "segmentation").exists() or time.sleep(2.0) is None, "segment"),
-        "after the surface": (lambda: "surface" in _finished(case), "simulate"),
-        "mid-simulation": (lambda: 20 <= _checkpoint_step(case) < 60, "simulate"),  # of ~67 steps
+    case, marker = tmp_path / "killed", tmp_path / "hanging"
+    moments = {  # name -> (condition at which the run is killed, stage it interrupts, marker of a hanging write)
+        "mid-write of the segmentation": (marker.exists, "segment", marker),
+        "after the surface": (lambda: "surface" in _finished(case), "simulate", None),
+        "mid-simulation": (lambda: 20 <= _checkpoint_step(case) < 60, "simulate", None),  # of ~67 steps
     }
-    for name, (condition, interrupted) in moments.items():
+    for name, (condition, interrupted, hang_marker) in moments.items():
         before = _finished(case)
-        _kill_when(_start_run(small_image, case, config_path), condition)
+        _kill_when(_start_run(small_image, case, config_path, hang_marker), condition)
         after = _finished(case)
         assert {k: after[k] for k in before} == before, f"{name}: a finished stage was repeated"
         assert interrupted not in after, f"{name}: the run was not interrupted in time"
+        if hang_marker is not None:  # the half-written folder is a temporary, never the result
+            assert not (case / "segmentation").exists()
+            assert [p.name.split(".")[1] for p in case.iterdir()] == ["segmentation"]
     before = _finished(case)
     lines = []
     run(small_image, case, Config.from_toml(config_path), log=lines.append)

@@ -3,16 +3,24 @@
 A file is written under a temporary name in its destination folder and renamed
 into place; a stage's output folder is assembled under a temporary name and
 renamed into place as a whole, replacing the previous one only once complete.
+A process killed mid-write leaves only such temporaries, which
+``remove_leftovers`` clears before the stage is run again.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
+
+
+# Names of the temporaries below: "." + name + "." + tempfile's 8 random characters (+ suffixes);
+# a folder being replaced is parked under "." + name + ".old." + 8 characters.
+_TEMPORARY = re.compile(r"\.[^.]+\.(old\.)?[a-z0-9_]{8}(\.[A-Za-z0-9]+)*")
 
 
 def _umask() -> int:
@@ -82,3 +90,25 @@ def atomic_dir(path: str | os.PathLike):
             except OSError:
                 break
         raise
+
+
+def remove_leftovers(folder: str | os.PathLike) -> list[Path]:
+    """Delete the temporaries that a killed ``atomic_path`` or ``atomic_dir`` left in ``folder``.
+
+    Only names of the form these helpers create are touched, so a user's own
+    files stay.  One writer per folder at a time is assumed: a concurrent
+    writer's temporaries would be taken for leftovers.
+
+    Returns
+    -------
+    list of Path
+        The files and folders removed (none when ``folder`` does not exist).
+    """
+    folder = Path(folder)
+    found = [p for p in folder.iterdir() if _TEMPORARY.fullmatch(p.name)] if folder.is_dir() else []
+    for path in found:
+        if path.is_dir():
+            shutil.rmtree(path)
+        else:
+            path.unlink()
+    return found
