@@ -8,8 +8,8 @@ package versions).  On the next run a stage whose key matches the record and
 whose outputs are all present is skipped; anything else is run again, and
 every stage after it sees new input hashes and runs again too.  Stages write
 their outputs atomically, so a run killed at any moment leaves either a
-finished stage or none (the temporaries of a write it interrupted are removed
-before that stage runs again); the flow stage also resumes from its own checkpoint.
+finished stage or none (the hidden temporary of a write it interrupted is
+deleted when that stage writes again); the flow stage also resumes from its own checkpoint.
 
 The stages live in their packages; this module only knows their file
 contracts (``STAGES``) and calls their ``run_stage(case_dir, params)``
@@ -30,7 +30,7 @@ from typing import Callable
 
 from carotid.config import Config
 from carotid.errors import CarotidError
-from carotid.io import remove_leftovers, write_json
+from carotid.io import write_json
 
 CASE_FILE = "case.json"
 
@@ -144,8 +144,6 @@ def run_stage(stage: Stage, image: Path, case_dir: Path, config: Config) -> str:
     done = record["stages"].get(stage.name, {})
     if done.get("key") == key and all((case_dir / o).exists() for o in stage.outputs):
         return f"{stage.name}: unchanged, skipped"
-    for folder in {(case_dir / o).parent for o in stage.outputs}:
-        remove_leftovers(folder)
     t0 = time.perf_counter()
     stage.load()(case_dir, params, inputs)
     seconds = time.perf_counter() - t0

@@ -1,11 +1,14 @@
 """Image I/O: formats, geometry, DICOM series and clear errors."""
 
+import tempfile
+from pathlib import Path
+
 import numpy as np
 import pytest
 import SimpleITK as sitk
 
 from carotid.errors import CarotidError
-from carotid.io import Volume, atomic_dir, atomic_path, read_image, remove_leftovers, write_image, write_json
+from carotid.io import Volume, atomic_dir, atomic_path, read_image, write_image, write_json
 
 DIRECTION = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # rotated 90 degrees about z
 
@@ -94,20 +97,25 @@ def test_failed_write_leaves_previous_file(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["x.json"]
 
 
-def test_leftovers_of_interrupted_writes_are_removed_and_nothing_else(tmp_path):
-    write_json({"a": 1}, tmp_path / "x.json")
-    (tmp_path / "seg").mkdir()
-    user_files = [".git", ".DS_Store", ".notes.txt", "x.json", "seg"]
+def test_the_next_write_removes_a_killed_writes_temporary_and_nothing_else(tmp_path):
+    user_files = [".git", ".DS_Store", ".notes.txt", "seg"]
     for name in user_files[:3]:
         (tmp_path / name).write_text("mine")
+    with atomic_dir(tmp_path / "seg") as tmp:
+        (tmp / "mask.nii.gz").write_bytes(b"old")
     # Entered and never left (kept referenced, so not closed either), as when the process is killed mid-write.
-    writers = [atomic_path(tmp_path / "levelset.nii.gz"), atomic_dir(tmp_path / "seg")]
-    file_tmp, folder_tmp = (writer.__enter__() for writer in writers)
+    writers = [atomic_path(tmp_path / "levelset.nii.gz"), atomic_dir(tmp_path / "seg"),
+               atomic_path(tmp_path / "other.nii.gz")]
+    file_tmp, folder_tmp, other_tmp = (writer.__enter__() for writer in writers)
     (folder_tmp / "mask.nii.gz").write_bytes(b"half")
-    assert file_tmp.exists() and folder_tmp.exists()
-    assert sorted(remove_leftovers(tmp_path)) == sorted([file_tmp, folder_tmp])
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(user_files)
-    assert remove_leftovers(tmp_path / "absent") == []
+    parked = Path(tempfile.mkdtemp(prefix=".seg.old.", dir=tmp_path))  # killed between atomic_dir's two renames
+    with atomic_path(tmp_path / "levelset.nii.gz") as tmp:
+        tmp.write_bytes(b"levelset")
+    with atomic_dir(tmp_path / "seg") as tmp:
+        (tmp / "mask.nii.gz").write_bytes(b"new")
+    assert not any(p.exists() for p in (file_tmp, folder_tmp, parked)) and other_tmp.exists()  # another path's stays
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(user_files + ["levelset.nii.gz", other_tmp.name])
+    assert (tmp_path / "seg" / "mask.nii.gz").read_bytes() == b"new"
 
 
 def test_nan_voxels_in_nifti_are_reported(tmp_path):

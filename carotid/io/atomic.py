@@ -3,8 +3,9 @@
 A file is written under a temporary name in its destination folder and renamed
 into place; a stage's output folder is assembled under a temporary name and
 renamed into place as a whole, replacing the previous one only once complete.
-A process killed mid-write leaves only such temporaries, which
-``remove_leftovers`` clears before the stage is run again.
+A process killed mid-write leaves only such a temporary; the next write of the
+same file or folder deletes it first.  One writer per path at a time is
+assumed: a concurrent writer's temporary would be taken for a leftover.
 """
 
 from __future__ import annotations
@@ -17,10 +18,7 @@ import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 
-
-# Names of the temporaries below: "." + name + "." + tempfile's 8 random characters (+ suffixes);
-# a folder being replaced is parked under "." + name + ".old." + 8 characters.
-_TEMPORARY = re.compile(r"\.[^.]+\.(old\.)?[a-z0-9_]{8}(\.[A-Za-z0-9]+)*")
+_RANDOM = "[a-z0-9_]{8}"  # the part of a temporary's name that tempfile draws
 
 
 def _umask() -> int:
@@ -33,6 +31,17 @@ def _suffixes(path: Path) -> str:
     return "".join(path.suffixes[-2:]) if path.name.endswith(".gz") else path.suffix
 
 
+def _remove_leftovers(folder: Path, pattern: str) -> None:
+    """Delete the files and folders in ``folder`` whose names match the regular expression ``pattern``
+    (the temporaries of a write to the same path that was killed)."""
+    for entry in folder.iterdir():
+        if re.fullmatch(pattern, entry.name):
+            if entry.is_dir():
+                shutil.rmtree(entry)
+            else:
+                entry.unlink()
+
+
 @contextmanager
 def atomic_path(path: str | os.PathLike):
     """Yield a temporary path beside ``path`` (same suffix); rename it to ``path`` on success.
@@ -41,7 +50,9 @@ def atomic_path(path: str | os.PathLike):
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name.split('.')[0]}.", suffix=_suffixes(path), dir=path.parent)
+    prefix, suffix = f".{path.name.split('.')[0]}.", _suffixes(path)
+    _remove_leftovers(path.parent, re.escape(prefix) + _RANDOM + re.escape(suffix))
+    fd, tmp = tempfile.mkstemp(prefix=prefix, suffix=suffix, dir=path.parent)
     os.close(fd)
     tmp = Path(tmp)
     tmp.chmod(0o666 & ~_umask())
@@ -71,12 +82,14 @@ def atomic_dir(path: str | os.PathLike):
     parent = path.parent
     created = [p for p in (parent, *parent.parents) if not p.exists()]
     parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=parent))
+    prefix = f".{path.name}."
+    _remove_leftovers(parent, re.escape(prefix) + r"(old\.)?" + _RANDOM)  # a killed write's folders
+    tmp = Path(tempfile.mkdtemp(prefix=prefix, dir=parent))
     tmp.chmod(0o777 & ~_umask())
     try:
         yield tmp
         if path.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{path.name}.old.", dir=parent))
+            old = Path(tempfile.mkdtemp(prefix=f"{prefix}old.", dir=parent))
             os.replace(path, old / path.name)
             os.replace(tmp, path)
             shutil.rmtree(old)
@@ -90,25 +103,3 @@ def atomic_dir(path: str | os.PathLike):
             except OSError:
                 break
         raise
-
-
-def remove_leftovers(folder: str | os.PathLike) -> list[Path]:
-    """Delete the temporaries that a killed ``atomic_path`` or ``atomic_dir`` left in ``folder``.
-
-    Only names of the form these helpers create are touched, so a user's own
-    files stay.  One writer per folder at a time is assumed: a concurrent
-    writer's temporaries would be taken for leftovers.
-
-    Returns
-    -------
-    list of Path
-        The files and folders removed (none when ``folder`` does not exist).
-    """
-    folder = Path(folder)
-    found = [p for p in folder.iterdir() if _TEMPORARY.fullmatch(p.name)] if folder.is_dir() else []
-    for path in found:
-        if path.is_dir():
-            shutil.rmtree(path)
-        else:
-            path.unlink()
-    return found
