@@ -229,13 +229,14 @@ def trunk_axis(mask: np.ndarray, spacing_kji) -> tuple[np.ndarray, np.ndarray]:
         return kji, radii
     edges = sparse.triu(adjacency, format="coo")
     step = np.linalg.norm((kji[edges.row] - kji[edges.col]) * spacing, axis=1)
-    weight = step * (0.5 * (radii[edges.row] + radii[edges.col])) ** 2 + 1e-6
 
     def graph(w):
         return sparse.csr_matrix((w, (edges.row, edges.col)), shape=adjacency.shape)
 
+    weighted = graph(step * (0.5 * (radii[edges.row] + radii[edges.col])) ** 2 + 1e-6)
+
     def farthest(start):
-        reach = csgraph.dijkstra(graph(weight), directed=False, indices=start)
+        reach = csgraph.dijkstra(weighted, directed=False, indices=start)
         return int(np.argmax(np.where(np.isfinite(reach), reach, -1.0)))
 
     first = farthest(int(np.argmax(radii)))
