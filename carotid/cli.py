@@ -45,7 +45,7 @@ def _segment_parameters(args):
         "wall_trunk_mm": args.wall_trunk,
     }
     if args.hu_window:
-        fields["hu_low"], fields["hu_high"] = args.hu_window
+        fields["window"] = list(args.hu_window)
     if args.wall or args.wall_morphology or args.wall_trunk:
         fields["wall"] = True
     if args.wall_morphology:
@@ -54,18 +54,36 @@ def _segment_parameters(args):
 
 
 def cmd_phantom(args) -> int:
-    from carotid.phantom import make_phantom, write_phantom
+    from carotid.phantom import make_phantom, sample_family, write_phantom
 
-    phantom = make_phantom(stenosis=args.stenosis, noise=args.noise, seed=args.seed,
-                           spacing=tuple(args.spacing), extent=tuple(args.extent))
+    kwargs = sample_family(args.seed, modality=args.modality) if args.family else {}
+    explicit = {
+        "stenosis": args.stenosis, "nascet": args.nascet, "noise": args.noise, "seed": args.seed,
+        "spacing": args.spacing, "extent": args.extent, "vein_gap_mm": args.vein_gap,
+        "venous_fraction": args.venous_fraction, "calcium_hu": args.calcium_hu, "blur_sigma_mm": args.blur_sigma,
+        "arterial_hu": args.arterial_hu, "bolus_fade": args.bolus_fade, "ica_shape": args.ica_shape,
+        "modality": args.modality, "bias": args.bias,
+    }
+    explicit = {k: v for k, v in explicit.items() if v is not None}
+    if "nascet" in explicit:
+        kwargs.pop("stenosis", None)
+    kwargs.update(explicit)
+    for key in ("spacing", "extent"):
+        if key in kwargs:
+            kwargs[key] = tuple(kwargs[key])
+    phantom = make_phantom(**kwargs)
     out = write_phantom(phantom, args.out_dir)
-    sten = phantom.info["stenosis"]
-    print(f"phantom written to {out} (ICA stenosis: {100 * sten['area_reduction']:.0f}% by area, "
-          f"NASCET {100 * sten['nascet']:.0f}%; CCA seed {np.round(phantom.info['seeds_mm']['CCA'], 1).tolist()} mm)")
+    info = phantom.info
+    sten = info["stenosis"]
+    vein = info["vein"]
+    print(f"phantom written to {out} ({info['modality'].upper()}, {info['model']} model; ICA stenosis: "
+          f"area stenosis {100 * sten['area_reduction']:.0f}%, NASCET {100 * sten['nascet']:.0f}% (diameter); "
+          f"{info['ica_shape']['shape']} ICA; vein gap {vein['min_gap_to_lumen_mm']:.2f} mm; "
+          f"CCA seed {np.round(info['seeds_mm']['CCA'], 1).tolist()} mm)")
     return 0
 
 
-def run_segmentation(image_path, case_dir, seeds=None, init_mask_path=None, params=None):
+def run_segmentation(image_path, case_dir, seeds=None, init_mask_path=None, params=None, stops=None):
     """Read an image, segment it with a progress bar and write ``CASE_DIR/segmentation``.
 
     Returns
@@ -81,7 +99,8 @@ def run_segmentation(image_path, case_dir, seeds=None, init_mask_path=None, para
         init_mask = read_image(init_mask_path).array > 0
     bar, update = _progress_bar("segment")
     try:
-        result = segment(volume, seeds_xyz=seeds, init_mask=init_mask, params=params, progress=update)
+        result = segment(volume, seeds_xyz=seeds, init_mask=init_mask, params=params, progress=update,
+                         stops_xyz=stops)
     finally:
         bar.close()
     return result, write_segmentation(result, case_dir)
@@ -89,7 +108,7 @@ def run_segmentation(image_path, case_dir, seeds=None, init_mask_path=None, para
 
 def cmd_segment(args) -> int:
     result, out = run_segmentation(args.image, args.output, seeds=args.seed, init_mask_path=args.init_mask,
-                                   params=_segment_parameters(args))
+                                   params=_segment_parameters(args), stops=args.stop)
     rep = result.report
     state = "converged" if rep["converged"] else "NOT converged (raise --max-iterations)"
     wall = "" if rep["wall"] is None else f"whole vessel {rep['wall']['volume_mm3']:.0f} mm^3, "
@@ -176,12 +195,17 @@ def cmd_config(args) -> int:
 
 def _add_segment_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", nargs=3, type=float, action="append", metavar=("X", "Y", "Z"),
-                   help="seed point in world mm (LPS), repeatable; none: automatic initialisation")
+                   help="seed point in world mm (LPS), repeatable (one per branch is safest); none: automatic "
+                        "initialisation")
+    p.add_argument("--stop", nargs=3, type=float, action="append", metavar=("X", "Y", "Z"),
+                   help="stop point in world mm (LPS), repeatable: the bright structure around it (a vein the front "
+                        "leaked into) is kept out of the lumen")
     p.add_argument("--init-mask", type=Path, metavar="FILE",
                    help="initial region (image on the same grid, nonzero inside); may cross the boundary")
     p.add_argument("--alpha", type=float, help="curvature weight of eq. (1), 0..1 (default 0.2)")
     p.add_argument("--hu-window", nargs=2, type=float, metavar=("LOW", "HIGH"),
-                   help="HU window; brighter voxels are folded dark (default -100 550)")
+                   help="intensity window in the image's units (HU for CT); brighter voxels are folded dark "
+                        "(default: estimated from the lumen at the seeds and the tissue around it)")
     p.add_argument("--kernel-radius", type=float, metavar="MM", help="GPF kernel support (default 10 mm)")
     p.add_argument("--sigma", type=float, metavar="MM", help="pre-smoothing in mm (default 0.6)")
     p.add_argument("--refine-radius", type=float, metavar="MM",
@@ -210,15 +234,38 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", default="carotid-demo", help="output folder (default ./carotid-demo)")
     p.set_defaults(func=cmd_demo)
 
-    p = sub.add_parser("phantom", help="write a synthetic carotid CTA with its ground truth")
+    p = sub.add_parser("phantom", help="write a synthetic carotid CTA (or MRA) with its ground truth")
     p.add_argument("out_dir", type=Path)
-    p.add_argument("--stenosis", type=float, default=0.7, help="ICA area reduction, 0..0.95 (default 0.7)")
-    p.add_argument("--noise", type=float, default=20.0, help="noise standard deviation in HU (default 20)")
+    grade = p.add_mutually_exclusive_group()
+    grade.add_argument("--area-stenosis", "--stenosis", dest="stenosis", type=float, metavar="FRACTION",
+                       help="ICA stenosis as the AREA reduction 1-(d_min/d_local)^2, 0..0.95 (default 0.7); "
+                            "--stenosis is an alias")
+    grade.add_argument("--nascet", type=float, metavar="FRACTION",
+                       help="ICA stenosis by NASCET, 1 - d_min/d_distal ICA (diameters), instead of the area "
+                            "reduction; at most about 0.7 (the area reduction stays < 0.95)")
+    p.add_argument("--noise", type=float, help="noise standard deviation, HU in CT (default 20), MR units in MR")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--spacing", nargs=3, type=float, default=(0.45, 0.45, 0.625), metavar=("X", "Y", "Z"),
+    p.add_argument("--spacing", nargs=3, type=float, metavar=("X", "Y", "Z"),
                    help="voxel size in mm (default 0.45 0.45 0.625)")
-    p.add_argument("--extent", nargs=3, type=float, default=(44.0, 44.0, 75.0), metavar=("X", "Y", "Z"),
+    p.add_argument("--extent", nargs=3, type=float, metavar=("X", "Y", "Z"),
                    help="field of view in mm (default 44 44 75)")
+    family = p.add_argument_group("family model (any of these selects it; see carotid.phantom.sample_family)")
+    family.add_argument("--family", action="store_true",
+                        help="draw every parameter from the phantom family with --seed; explicit options override")
+    family.add_argument("--vein-gap", type=float, metavar="MM",
+                        help="smallest gap between the jugular vein and the arterial lumen walls (family 0.3-2)")
+    family.add_argument("--venous-fraction", type=float, metavar="F",
+                        help="venous enhancement / proximal arterial enhancement above tissue, 0..1 (family 0.4-0.9)")
+    family.add_argument("--calcium-hu", type=float, metavar="HU", help="calcium density, CT only (family 300-1500)")
+    family.add_argument("--blur-sigma", type=float, metavar="MM",
+                        help="scanner blur standard deviation in plane (family 0.4-0.8; default 1 mm FWHM)")
+    family.add_argument("--arterial-hu", type=float, metavar="LEVEL",
+                        help="proximal lumen level: HU in CT (family 250-600), MR units in MR (1200-2500)")
+    family.add_argument("--bolus-fade", type=float, metavar="F",
+                        help="fraction of the arterial enhancement lost from proximal CCA to distal ICA (family 0-0.3)")
+    family.add_argument("--ica-shape", choices=("smooth", "kink", "loop"), help="ICA course distal to the stenosis")
+    family.add_argument("--modality", choices=("ct", "mr"), help="CT angiogram (HU) or contrast-enhanced MRA")
+    family.add_argument("--bias", type=float, metavar="A", help="MR bias field amplitude, 0..1 (default 0.3 in MR)")
     p.set_defaults(func=cmd_phantom)
 
     p = sub.add_parser("segment", help="segment the arterial lumen (GPF level set)")

@@ -50,7 +50,7 @@ def test_segment_options_reach_the_parameters(phantom_dir, tmp_path, capsys):
                                           "--max-iterations", "200"])
     assert code == 0
     params = json.loads((case / "segmentation" / "report.json").read_text())["parameters"]
-    assert params["alpha"] == 0.25 and params["hu_low"] == -50 and params["hu_high"] == 600
+    assert params["alpha"] == 0.25 and params["window"] == [-50, 600]
     assert params["refine_radius_mm"] == 0 and params["max_iterations"] == 200
     assert params["wall"] and params["wall_close_mm"] == 1 and params["wall_open_mm"] == 0.5
     assert params["wall_trunk_mm"] == 4

@@ -77,7 +77,9 @@ def test_opening_or_trunk_cuts_a_side_branch_but_keeps_the_vessel(cut):
         params = SegmentParameters(**PARAMS, **extra)
         results[name] = segment(case["image"], seeds_xyz=[case["seed"]], params=params).wall.array > 0
     assert np.count_nonzero(results["plain"] & beyond) > 0.8 * np.count_nonzero(beyond)
-    assert np.count_nonzero(results["cut"] & beyond) < 0.1 * np.count_nonzero(beyond)
+    # The trunk keeps what lies within its margin (3-4 mm) of the vessel: up to a fifth of the 15 mm branch beyond
+    # the outer wall (the opening cuts it closer to the wall).
+    assert np.count_nonzero(results["cut"] & beyond) < 0.25 * np.count_nonzero(beyond)
     assert dice(results["cut"], case["outer"]) >= 0.9
 
 

@@ -1,5 +1,6 @@
-"""Synthetic carotid CT angiograms with ground truth, generated in-process (nothing is downloaded)."""
+"""Synthetic carotid angiograms (CT or MR) with ground truth, generated in-process (nothing is downloaded)."""
 
-from carotid.phantom.ct import LABELS, Phantom, make_phantom, write_phantom
+from carotid.phantom.ct import FAMILY_KEYWORDS, LABELS, Phantom, make_phantom, write_phantom
+from carotid.phantom.family import FAMILY_RANGES, sample_family
 
-__all__ = ["LABELS", "Phantom", "make_phantom", "write_phantom"]
+__all__ = ["FAMILY_KEYWORDS", "FAMILY_RANGES", "LABELS", "Phantom", "make_phantom", "sample_family", "write_phantom"]

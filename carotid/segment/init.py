@@ -7,6 +7,7 @@ from scipy import ndimage
 
 from carotid.errors import CarotidError
 from carotid.io import Volume
+from carotid.segment.intensity import MAD_TO_SD
 
 
 def grid_mm(shape) -> list[np.ndarray]:
@@ -15,7 +16,18 @@ def grid_mm(shape) -> list[np.ndarray]:
             for a, n in enumerate(shape)]
 
 
-def seed_levelset(volume: Volume, seeds_xyz: np.ndarray, radius_mm: float) -> np.ndarray:
+def check_points(volume: Volume, points_xyz: np.ndarray, what: str) -> None:
+    """Raise CarotidError if a world point (mm) lies outside the image."""
+    outside = ~volume.contains(np.atleast_2d(points_xyz))
+    if outside.any():
+        bad = np.atleast_2d(points_xyz)[outside][0]
+        lo = volume.index_to_world(np.zeros(3))
+        hi = volume.index_to_world(np.asarray(volume.array.shape) - 1)
+        raise CarotidError(f"{what} ({bad[0]:.1f}, {bad[1]:.1f}, {bad[2]:.1f}) mm lies outside the image "
+                           f"(corners {np.round(lo, 1).tolist()} and {np.round(hi, 1).tolist()} mm)")
+
+
+def seed_levelset(volume: Volume, seeds_xyz: np.ndarray, radius_mm) -> np.ndarray:
     """Signed distance (mm) to the union of spheres of ``radius_mm`` around world seed points.
 
     Parameters
@@ -24,7 +36,8 @@ def seed_levelset(volume: Volume, seeds_xyz: np.ndarray, radius_mm: float) -> np
         Grid on which the level set lives.
     seeds_xyz : ndarray, shape (m, 3)
         Seed points (x, y, z) in world mm.
-    radius_mm : float
+    radius_mm : float or array_like, shape (m,)
+        Sphere radius, one for all or one per seed.
 
     Returns
     -------
@@ -36,20 +49,35 @@ def seed_levelset(volume: Volume, seeds_xyz: np.ndarray, radius_mm: float) -> np
         If a seed lies outside the image.
     """
     seeds_xyz = np.atleast_2d(np.asarray(seeds_xyz, float))
-    outside = ~volume.contains(seeds_xyz)
-    if outside.any():
-        bad = seeds_xyz[outside][0]
-        lo = volume.index_to_world(np.zeros(3))
-        hi = volume.index_to_world(np.asarray(volume.array.shape) - 1)
-        raise CarotidError(f"seed ({bad[0]:.1f}, {bad[1]:.1f}, {bad[2]:.1f}) mm lies outside the image "
-                           f"(corners {np.round(lo, 1).tolist()} and {np.round(hi, 1).tolist()} mm)")
+    check_points(volume, seeds_xyz, "seed")
     h = volume.spacing_kji.astype(np.float32)
     axes = grid_mm(volume.array.shape)
     phi = np.full(volume.array.shape, np.inf, np.float32)
-    for kji in volume.world_to_index(seeds_xyz):
+    radii = np.broadcast_to(np.asarray(radius_mm, np.float32), (len(seeds_xyz),))
+    for kji, radius in zip(volume.world_to_index(seeds_xyz), radii):
         d2 = sum(((axes[a] - np.float32(kji[a])) * h[a]) ** 2 for a in range(3))
-        np.minimum(phi, np.sqrt(d2) - np.float32(radius_mm), out=phi)
+        np.minimum(phi, np.sqrt(d2) - radius, out=phi)
     return phi
+
+
+def seed_sample(phi: np.ndarray, seeds_kji: np.ndarray) -> np.ndarray:
+    """Voxels inside the seed spheres (``phi < 0``), plus the voxel nearest each seed (never empty).
+
+    Parameters
+    ----------
+    phi : ndarray, shape (nk, nj, ni)
+        Seed level set from ``seed_levelset``.
+    seeds_kji : ndarray, shape (m, 3)
+        Continuous array indices of the seeds.
+
+    Returns
+    -------
+    ndarray of bool, same shape
+    """
+    sample = phi < 0
+    idx = np.clip(np.round(seeds_kji).astype(int), 0, np.asarray(phi.shape) - 1)
+    sample[tuple(idx.T)] = True
+    return sample
 
 
 def mask_levelset(mask: np.ndarray, spacing_kji) -> np.ndarray:
@@ -65,18 +93,19 @@ def mask_levelset(mask: np.ndarray, spacing_kji) -> np.ndarray:
 
 def automatic_region(image01: np.ndarray, ghat: np.ndarray, spacing_kji, excluded: np.ndarray | None = None,
                      min_volume_mm3: float = 10.0, min_length_mm: float = 10.0, min_depth_mm: float = 1.0,
-                     core: float = -0.5) -> np.ndarray:
+                     min_core_mm: float = 1.5, core: float = -0.5) -> np.ndarray:
     """Find the arterial lumen's core without a seed.
 
     Candidates are voxels deep inside bright structures (``ghat < core``),
-    not ``excluded`` (brighter than the HU window), whose windowed intensity
-    is above Otsu's threshold of those voxels.  Their cores (at least
+    not ``excluded`` (too bright to be lumen: bone and calcium in CT).  Their cores (at least
     ``min_depth_mm`` from the candidates' edge, which removes the thin bright
     rims that blur leaves around cortical bone and calcium) are split into
-    connected regions; those at least ``min_volume_mm3`` large and
-    ``min_length_mm`` long are kept, and the brightest one (median intensity:
-    in a CT angiogram the arteries carry more contrast than the veins) is
-    returned.
+    connected regions; those at least ``min_volume_mm3`` large, ``min_length_mm``
+    long and ``min_core_mm`` deep somewhere (a carotid's core is several mm
+    across; the cortex of a bone is a thin shell) are kept, and the one that is brightest and
+    homogeneous (largest median minus one robust standard deviation: in an
+    angiogram the arteries carry more contrast than the veins, and bone mixes
+    bright cortex with darker marrow) is returned.
 
     Returns
     -------
@@ -87,28 +116,28 @@ def automatic_region(image01: np.ndarray, ghat: np.ndarray, spacing_kji, exclude
     CarotidError
         If no bright tubular structure is found.
     """
-    from skimage.filters import threshold_otsu
-
     spacing_kji = np.asarray(spacing_kji, float)
     deep = ghat < core
     if excluded is not None:
         deep &= ~excluded
     if deep.sum() < 10:
         raise CarotidError("automatic initialisation found no bright structure; give a --seed")
-    threshold = threshold_otsu(image01[deep])
-    candidates = deep & (image01 > threshold)
-    depth = ndimage.distance_transform_edt(candidates, sampling=spacing_kji)
+    depth = ndimage.distance_transform_edt(deep, sampling=spacing_kji)
     labels, n = ndimage.label(depth >= min_depth_mm)
     if n == 0:
         raise CarotidError("automatic initialisation found no bright structure; give a --seed")
     index = np.arange(1, n + 1)
     voxel = float(np.prod(spacing_kji))
     volumes = ndimage.sum_labels(np.ones_like(labels, np.float32), labels, index) * voxel
-    medians = ndimage.median(image01, labels, index)
+    medians = np.asarray(ndimage.median(image01, labels, index))
+    deviation = np.abs(image01 - np.concatenate([[0.0], medians]).astype(np.float32)[labels])
+    spreads = np.asarray(ndimage.median(deviation, labels, index))
     slices = ndimage.find_objects(labels)
     lengths = np.array([max((s.stop - s.start) * h for s, h in zip(sl, spacing_kji)) for sl in slices])
-    ok = (volumes >= min_volume_mm3) & (lengths >= min_length_mm)
+    thickness = np.asarray(ndimage.maximum(depth, labels, index))
+    ok = (volumes >= min_volume_mm3) & (lengths >= min_length_mm) & (thickness >= min_core_mm)
     if not ok.any():
         raise CarotidError("automatic initialisation found no vessel-like structure; give a --seed")
-    best = index[ok][np.argmax(np.asarray(medians)[ok])]
+    score = medians - MAD_TO_SD * spreads
+    best = index[ok][np.argmax(score[ok])]
     return labels == best

@@ -255,6 +255,18 @@ def _propagate(phi, ends, points, normals, hz, hy, hx, width, owner):  # pragma:
     return visited
 
 
+def edge_starts(voxels: np.ndarray, shape) -> np.ndarray:
+    """The voxels whose +1 edges include every grid edge that touches ``voxels`` (flat indices, sorted, unique).
+
+    ``zero_crossings`` examines the +1 edges of its candidates; an edge that
+    ends in a voxel of the set starts at that voxel's -1 neighbour.
+    """
+    strides = (shape[1] * shape[2], shape[2], 1)
+    kji = _unravel(voxels, shape)
+    parts = [voxels] + [voxels[kji[:, axis] > 0] - stride for axis, stride in enumerate(strides)]
+    return np.unique(np.concatenate(parts))
+
+
 def redistance(phi: np.ndarray, near_front: np.ndarray, spacing_kji, width: float,
                owner: np.ndarray | None = None) -> np.ndarray:
     """Reset ``phi`` in place to a signed distance (mm) within ``width`` of the front.
@@ -264,8 +276,10 @@ def redistance(phi: np.ndarray, near_front: np.ndarray, spacing_kji, width: floa
     phi : ndarray, shape (nk, nj, ni), float32
         Level set, negative inside.
     near_front : ndarray of int
-        Flat indices of voxels that include every voxel with a zero crossing on
-        one of its +1 edges (for instance all voxels with ``|phi|`` below 1.5 voxels).
+        Flat indices of voxels that include an end of every grid edge with a
+        zero crossing (for instance all voxels with ``|phi|`` below 1.5 voxels of a
+        distance-like ``phi``, or the whole band of an evolving one, whose
+        gradient can steepen between re-initialisations).
     spacing_kji : array_like, shape (3,)
     width : float
         Band half-width in mm.
@@ -278,7 +292,7 @@ def redistance(phi: np.ndarray, near_front: np.ndarray, spacing_kji, width: floa
         Flat indices of the voxels within ``width`` of the front (the band).
     """
     spacing_kji = np.asarray(spacing_kji, float)
-    points, normals, ends = zero_crossings(phi, near_front, spacing_kji)
+    points, normals, ends = zero_crossings(phi, edge_starts(near_front, phi.shape), spacing_kji)
     if len(points) == 0:
         return np.empty(0, np.int64)
     if owner is None:
@@ -402,7 +416,7 @@ def evolve(phi: np.ndarray, ghat: np.ndarray, g: np.ndarray, spacing_kji, alpha:
             phi.ravel()[band] = out
         it += reinit_every
         changed = int(np.count_nonzero((out < 0) != (before < 0)))
-        new_band = redistance(phi, band[np.abs(out) <= near], spacing_kji, width, owner)
+        new_band = redistance(phi, band, spacing_kji, width, owner)
         left = np.setdiff1d(band, new_band, assume_unique=True)
         phi.ravel()[left] = np.where(phi.ravel()[left] < 0, np.float32(-width), np.float32(width))
         band = new_band

@@ -1,9 +1,10 @@
 """Pre-processing of CT angiograms before the GPF potential.
 
-* ``window_hu``: maps HU to [0, 1] over an arterial window; values brighter
-  than the window (calcium, cortical bone) are folded back down, so a calcified
-  plaque touching the lumen appears dark and forms an edge instead of looking
-  like more contrast.
+* ``window_hu``: maps intensities to [0, 1] over the lumen's window (from
+  ``intensity.IntensityModel``, possibly varying along the vessel); values
+  brighter than the window (calcium, cortical bone) are folded back down, so a
+  calcified plaque touching the lumen appears dark and forms an edge instead of
+  looking like more contrast.
 * ``denoise``: edge-preserving curvature anisotropic diffusion (SimpleITK).
 * ``edge_stopping``: ``g = 1 / (1 + |grad I| / beta)`` of eq. (1).
 """
@@ -17,17 +18,18 @@ from scipy import ndimage
 from carotid.io import Volume, to_sitk
 
 
-def window_hu(hu: np.ndarray, low: float = -100.0, high: float = 550.0, fold: float = 3.0) -> np.ndarray:
-    """Window HU to [0, 1], folding values above ``high`` back down.
+def window_hu(hu: np.ndarray, low=-100.0, high=550.0, fold: float = 3.0) -> np.ndarray:
+    """Window intensities to [0, 1], folding values above ``high`` back down.
 
     Parameters
     ----------
     hu : ndarray, shape (nk, nj, ni)
-        Intensities in HU.
-    low, high : float
-        Window in HU; ``low`` maps to 0 and ``high`` to 1.
+        Intensities (HU for CT, the scanner's units for MR).
+    low, high : float or ndarray broadcastable to ``hu``
+        Window; ``low`` maps to 0 and ``high`` to 1.  Arrays give a window that
+        follows the lumen level along the vessel.
     fold : float
-        Slope of the fold above ``high``: ``high + d`` HU maps like ``high - fold * d``
+        Slope of the fold above ``high``: ``high + d`` maps like ``high - fold * d``
         (0 clips instead of folding).
 
     Returns
@@ -35,9 +37,11 @@ def window_hu(hu: np.ndarray, low: float = -100.0, high: float = 550.0, fold: fl
     ndarray, float32, same shape
     """
     v = np.asarray(hu, np.float32)
+    low = np.asarray(low, np.float32)
+    high = np.asarray(high, np.float32)
     if fold > 0:
-        v = np.where(v > high, high - fold * (v - high), v)
-    out = (np.clip(v, low, high) - np.float32(low)) / np.float32(high - low)
+        v = np.where(v > high, high - np.float32(fold) * (v - high), v)
+    out = (np.clip(v, low, high) - low) / (high - low)
     return out.astype(np.float32, copy=False)
 
 

@@ -18,7 +18,12 @@ from scipy import ndimage
 
 from carotid.errors import CarotidError
 from carotid.io import Volume, atomic_dir, write_image, write_json
-from carotid.segment.init import automatic_region, mask_levelset, seed_levelset
+from carotid.segment.calcium import hyperdense_edge
+from carotid.segment.barrier import (competing_region, half_level_barrier, half_maximum_speed, point_mask,
+                                     under_enhanced)
+from carotid.segment.init import automatic_region, check_points, mask_levelset, seed_levelset, seed_sample
+from carotid.segment.intensity import (IntensityModel, estimate_from_sample, local_level, local_radius,
+                                       provisional_window)
 from carotid.segment.levelset import evolve, signed_distance
 from carotid.segment.potential import gpf_potential
 from carotid.segment.preprocess import denoise, edge_stopping, window_hu
@@ -33,10 +38,40 @@ class SegmentParameters:
     ----------
     alpha : float
         Weight of the curvature term in eq. (1), 0 <= alpha < 1, capture stage.
-    hu_low, hu_high : float
-        Intensity window in HU; brighter values are folded back (calcium, bone).
-    hu_fold : float
-        Slope of that fold (0 clips instead).
+    window : list of float
+        ``[low, high]``: intensity window in the image's units (HU for CT); brighter values are folded back
+        (calcium, bone).  Empty (the default): estimated from the image (``intensity``), from the lumen level
+        ``A`` at the seeds and the background ``B`` around them, as ``[B - window_margins[0] (A - B),
+        A + max(window_margins[1] (A - B), 3 spread)]``, and followed along the vessel (``level_mm``).
+    window_margins : list of float
+        Fractions of the contrast ``A - B`` below the background and above the lumen level that the estimated
+        window spans.
+    level_mm : float
+        Scale (mm) over which the lumen level is followed along the vessel (bolus fade, MR bias field) for the
+        refining stage; 0: one level for the whole image.
+    fold : float
+        Slope of a fold above the window: ``top + d`` maps like ``top - fold d`` (0 clips).  With
+        ``calcium_edge`` calcium is already at the background and the window only needs to clip; a fold then
+        also darkens the lumen's side of a calcification's blur, which can close a calcified stenosis.
+    calcium_edge : bool
+        Set calcium and bone to the background out to their true edge, half-way between the lumen level and
+        their own peak (``calcium`` module), instead of relying on the fold alone, whose edge lies inside the
+        lumen next to a calcification and grades a calcified stenosis too tight.
+    barrier : float
+        Half level of the barrier (``barrier.half_level_barrier``): voxels darker than this fraction of the
+        brightest lumen-like value within ``barrier_reach_mm`` push the front out (a blurred gap to an enhancing
+        neighbour).  0: off (the paper's GPF alone).
+    barrier_reach_mm : float
+        Half-width (mm) of the neighbourhood of that local maximum.
+    plateau : float
+        Wide regions dimmer than this fraction of the brightest lumen within 10 mm (a vein, a false lumen:
+        ``barrier.under_enhanced``) and what the watershed gives them up to the darkest gap
+        (``barrier.competing_region``) are kept out of the lumen.  0: off.
+    half_maximum : float
+        Weight of the half-maximum force (``barrier.half_maximum_speed``) blended with the potential in the
+        refining stage.  The potential's zero lies outside a curved, blurred wall and the half maximum inside
+        it, both by about the blur squared times the curvature: their blend stays on a tight stenosis's wall.
+        0: the paper's potential alone.
     denoise_iterations : int
         Curvature anisotropic diffusion iterations before the potential (0: off).
     kernel_radius_mm : float
@@ -89,9 +124,15 @@ class SegmentParameters:
     """
 
     alpha: float = 0.2
-    hu_low: float = -100.0
-    hu_high: float = 550.0
-    hu_fold: float = 3.0
+    window: list = field(default_factory=list)
+    window_margins: list = field(default_factory=lambda: [0.1, 0.25])
+    level_mm: float = 10.0
+    fold: float = 0.0
+    calcium_edge: bool = True
+    barrier: float = 0.5
+    barrier_reach_mm: float = 1.5
+    plateau: float = 0.8
+    half_maximum: float = 0.5
     denoise_iterations: int = 0
     kernel_radius_mm: float = 10.0
     sigma_mm: float = 0.6
@@ -117,11 +158,16 @@ class SegmentParameters:
     wall_open_mm: float = 0.0
     wall_trunk_mm: float = 0.0
 
-    def stages(self) -> list[tuple[float, float, float]]:
-        """(kernel radius mm, pre-smoothing mm, alpha) of each evolution stage: capture, then refinement."""
-        out = [(self.kernel_radius_mm, self.sigma_mm, self.alpha)]
+    def stages(self, spacing_kji) -> list[tuple[float, float, float]]:
+        """(kernel radius mm, pre-smoothing mm, alpha) of each evolution stage: capture, then refinement.
+
+        Lengths are at least what the grid resolves: pre-smoothing half the largest voxel size, the refining
+        kernel three (on 1.5 mm voxels a 1.5 mm kernel has one tap and only amplifies noise).
+        """
+        h = float(np.max(spacing_kji))
+        out = [(max(self.kernel_radius_mm, 3 * h), max(self.sigma_mm, 0.5 * h), self.alpha)]
         if self.refine_radius_mm > 0:
-            out.append((self.refine_radius_mm, self.refine_sigma_mm, self.refine_alpha))
+            out.append((max(self.refine_radius_mm, 3 * h), max(self.refine_sigma_mm, 0.5 * h), self.refine_alpha))
         return out
 
     def validate(self) -> "SegmentParameters":
@@ -129,7 +175,13 @@ class SegmentParameters:
         checks = [
             (0.0 <= self.alpha < 1.0 and 0.0 <= self.refine_alpha < 1.0, "alpha must lie in [0, 1)"),
             (self.refine_radius_mm >= 0 and self.refine_sigma_mm >= 0, "refine_* must not be negative"),
-            (self.hu_high > self.hu_low, "hu_high must exceed hu_low"),
+            (len(self.window) == 0 or (len(self.window) == 2 and self.window[1] > self.window[0]),
+             "window must be empty (estimated) or [low, high] with high > low"),
+            (len(self.window_margins) == 2 and min(self.window_margins) >= 0,
+             "window_margins must be two fractions >= 0"),
+            (self.level_mm >= 0 and self.fold >= 0, "level_mm and fold must not be negative"),
+            (0 <= self.barrier < 1 and self.barrier_reach_mm > 0, "barrier must lie in [0, 1), barrier_reach_mm > 0"),
+            (0 <= self.half_maximum <= 1, "half_maximum must lie in [0, 1]"),
             (self.kernel_radius_mm > 0, "kernel_radius_mm must be positive"),
             (self.sigma_mm >= 0, "sigma_mm must not be negative"),
             (self.potential_scale > 0, "potential_scale must be positive"),
@@ -189,19 +241,79 @@ def check_image(volume: Volume) -> None:
 
 
 def speed_fields(image01: np.ndarray, spacing_kji, radius_mm: float, sigma_mm: float,
-                 params: SegmentParameters) -> tuple[np.ndarray, np.ndarray]:
-    """Normalised potential ``Ghat = tanh(G / potential_scale)`` and edge-stopping ``g``, float32."""
+                 params: SegmentParameters, barrier: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Normalised potential ``Ghat = tanh(G / potential_scale)`` (+1 on ``barrier``) and edge-stopping ``g``."""
     ghat = gpf_potential(image01, spacing_kji, radius_mm, sigma_mm)
     ghat /= np.float32(params.potential_scale)
     np.tanh(ghat, out=ghat)
+    if barrier is not None:
+        ghat[barrier] = 1.0
     return ghat, edge_stopping(image01, spacing_kji, params.edge_beta, sigma_mm)
 
 
-def windowed_image(volume: Volume, params: SegmentParameters) -> np.ndarray:
-    """The image the potential sees: optionally denoised, then HU-windowed to [0, 1], float32."""
-    if params.denoise_iterations:
-        volume = denoise(volume, params.denoise_iterations)
-    return window_hu(volume.array, params.hu_low, params.hu_high, params.hu_fold)
+def contrast_units(image01: np.ndarray, window, model: IntensityModel, level=None) -> np.ndarray:
+    """The windowed (folded) image in units of the lumen contrast: 0 background, 1 lumen level (float32)."""
+    low, high = (np.asarray(w, np.float32) for w in window)
+    lumen = np.float32(model.lumen) if level is None else level
+    background = np.float32(model.background)
+    return ((image01 * (high - low) + low - background) / np.maximum(lumen - background, 1e-6)).astype(np.float32)
+
+
+def neighbours(image01: np.ndarray, window, model: IntensityModel, spacing_kji, params: SegmentParameters,
+               lumen: np.ndarray, stops: np.ndarray | None) -> np.ndarray | None:
+    """What the lumen must not take: the territory of the stop points and of under-enhanced plateaus
+    (``barrier.competing_region``), or None when there is neither."""
+    contrast = contrast_units(image01, window, model)
+    others = np.zeros(contrast.shape, bool) if stops is None else stops
+    if params.plateau > 0:
+        others = others | under_enhanced(contrast, spacing_kji, params.plateau)
+    if not others.any():
+        return None
+    return competing_region(contrast, lumen & ~others, others, spacing_kji)
+
+
+def barrier_of(image01: np.ndarray, window, model: IntensityModel, spacing_kji, params: SegmentParameters,
+               excluded: np.ndarray | None = None) -> np.ndarray | None:
+    """Where the force pushes the front out whatever the potential: the half-level barrier
+    (``barrier.half_level_barrier``) and ``excluded``; None when there is none."""
+    out = excluded
+    if params.barrier > 0:
+        found = half_level_barrier(contrast_units(image01, window, model), spacing_kji, params.barrier,
+                                   reach_mm=params.barrier_reach_mm)
+        out = found if out is None else out | found
+    return out
+
+
+def lumen_window(model: IntensityModel, params: SegmentParameters, level=None) -> tuple:
+    """``(low, high)`` of the window: the override, or the model's window around ``level`` (default: its lumen).
+
+    ``level`` may be an array (the lumen level followed along the vessel); the margins then scale with the
+    local contrast.
+    """
+    if params.window:
+        return float(params.window[0]), float(params.window[1])
+    lo_margin, hi_margin = params.window_margins
+    if level is None:
+        return model.window(lo_margin, hi_margin)
+    contrast = np.maximum(level - np.float32(model.background), np.float32(0.25 * model.contrast))
+    low = np.float32(model.background) - np.float32(lo_margin) * contrast
+    high = np.float32(model.background) + contrast + np.maximum(np.float32(hi_margin) * contrast,
+                                                                 np.float32(3.0 * model.spread))
+    return low, high
+
+
+def lumen_sample(array: np.ndarray, region: np.ndarray) -> np.ndarray:
+    """The bright part of a region meant to lie in the lumen: above Otsu's threshold of its voxels.
+
+    A seed sphere near the wall, or an initial region across it, also holds tissue; its upper Otsu class
+    is lumen in either case.
+    """
+    from skimage.filters import threshold_otsu
+
+    values = array[region]
+    if values.size < 4 or values.max() == values.min():
+        return region
+    return region & (array > threshold_otsu(values))
 
 
 def keep_components(inside: np.ndarray, seeds_kji: np.ndarray | None) -> np.ndarray:
@@ -221,7 +333,7 @@ def keep_components(inside: np.ndarray, seeds_kji: np.ndarray | None) -> np.ndar
 
 
 def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
-            params: SegmentParameters | None = None, progress=None) -> Segmentation:
+            params: SegmentParameters | None = None, progress=None, stops_xyz=None) -> Segmentation:
     """Segment the arterial lumen of a CT angiogram with the GPF deformable model.
 
     Parameters
@@ -235,6 +347,9 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
     params : SegmentParameters, optional
     progress : callable, optional
         ``progress(iterations, changed, front_voxels)`` after every re-initialisation.
+    stops_xyz : array_like, shape (s, 3), optional
+        Stop points in world mm: the bright structure around each (up to the darkest surface between it and
+        the seeds, ``barrier.stop_region``) is kept out of the lumen.
 
     Without seeds and initial region the initialisation is automatic
     (``automatic_region``).
@@ -254,29 +369,65 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
         seeds_xyz = np.atleast_2d(np.asarray(seeds_xyz, float))
         phi = seed_levelset(volume, seeds_xyz, params.seed_radius_mm)  # validates the seeds first
         seeds_kji = volume.world_to_index(seeds_xyz)
+        sample = lumen_sample(volume.array, seed_sample(phi, seeds_kji))
         how = "seed"
     elif init_mask is not None:
         if init_mask.shape != volume.array.shape:
             raise CarotidError(f"initial region has shape {init_mask.shape}, image has {volume.array.shape}")
         phi = mask_levelset(init_mask, spacing)
+        sample = lumen_sample(volume.array, np.asarray(init_mask, bool))
         how = "region"
     else:
         phi = None
         how = "automatic"
 
-    image01 = windowed_image(volume, params)
-    stages = params.stages()
-    ghat, g = speed_fields(image01, spacing, *stages[0][:2], params)
-    timings["potential_s"] = time.perf_counter() - t0
+    source = image = volume.array
+    if params.denoise_iterations:
+        image = denoise(volume, params.denoise_iterations).array
     if phi is None:
-        region = automatic_region(image01, ghat, spacing, excluded=volume.array > params.hu_high)
+        low, high, ceiling = provisional_window(image)
+        image01 = window_hu(image, *(params.window or (low, high)), fold=0.0)
+        ghat, g = speed_fields(image01, spacing, *params.stages(spacing)[0][:2], params)
+        region = automatic_region(image01, ghat, spacing, excluded=source > ceiling)
         phi = mask_levelset(region, spacing)
+        sample = lumen_sample(source, region)
+    model = estimate_from_sample(source, sample, spacing, {"seed": "seeds"}.get(how, how))
+    window = lumen_window(model, params)
+    hyperdense = None
+    if params.calcium_edge:
+        image, hyperdense = hyperdense_edge(image, window[1], model.lumen, model.background, spacing)
+    stops = None
+    if stops_xyz is not None and len(stops_xyz):
+        stops_xyz = np.atleast_2d(np.asarray(stops_xyz, float))
+        check_points(volume, stops_xyz, "stop point")
+        stops = point_mask(volume.world_to_index(stops_xyz), image.shape)
+    if seeds_kji is not None:
+        # Each seed sphere grows to half the lumen's radius measured there, so that in a wide vessel (an aorta)
+        # the front starts within the potential's reach of the wall.
+        radii = 0.5 * local_radius(model.box, model.bright, seeds_kji, spacing)
+        phi = seed_levelset(volume, seeds_xyz, np.maximum(params.seed_radius_mm, radii))
+    image01 = window_hu(image, *window, params.fold)
+    stopped = neighbours(image01, window, model, spacing, params, sample, stops)
+    stages = params.stages(spacing)
+    ghat, g = speed_fields(image01, spacing, *stages[0][:2], params,
+                           barrier_of(image01, window, model, spacing, params, stopped))
+    timings["potential_s"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
     iterations, converged = [], []
+    level = None
     for number, (radius, sigma, alpha) in enumerate(stages):
         if number:
-            ghat, g = speed_fields(image01, spacing, radius, sigma, params)
+            if params.level_mm > 0 and not params.window:
+                core = phi < -float(spacing.max())
+                level = local_level(source, core if core.any() else phi < 0, spacing, params.level_mm, model.lumen)
+                window = lumen_window(model, params, level)
+                image01 = window_hu(image, *window, params.fold)
+            ghat, g = speed_fields(image01, spacing, radius, sigma, params, stopped)
+            if params.half_maximum > 0:
+                half = half_maximum_speed(contrast_units(image01, window, model, level), spacing)
+                ghat = (1.0 - params.half_maximum) * ghat + params.half_maximum * half
+                del half
         result = evolve(phi, ghat, g, spacing, alpha=alpha, cfl=params.cfl, max_iterations=params.max_iterations,
                         tolerance=params.tolerance, progress=progress)
         phi = result.phi
@@ -284,9 +435,18 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
         converged.append(result.converged)
     del ghat, g, image01
     timings["evolution_s"] = time.perf_counter() - t1
+    intensity = {**model.as_dict(), "window": [float(w) for w in lumen_window(model, params)], "hyperdense": hyperdense,
+                 "window_source": "override" if params.window else "estimated"}
+    if level is not None:
+        inside = phi < 0
+        intensity["followed_lumen_level_percentiles_5_50_95"] = (
+            np.percentile(level[inside], [5, 50, 95]).tolist() if inside.any() else None)
 
     t2 = time.perf_counter()
-    inside = keep_components(phi < 0, seeds_kji)
+    inside = phi < 0
+    if stopped is not None:
+        inside &= ~stopped
+    inside = keep_components(inside, seeds_kji)
     phi = np.where(inside, np.minimum(phi, -1e-3), np.maximum(phi, 0)).astype(np.float32)
     phi = signed_distance(phi, spacing, params.far_mm)
     mask = (phi < 0).astype(np.uint8)
@@ -308,9 +468,12 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
 
     report = {
         "method": "GPF level set (scalar kernel, eq. 5)",
+        "intensity": intensity,
         "parameters": asdict(params),
         "initialisation": how,
         "seeds_mm": None if seeds_kji is None else np.asarray(seeds_xyz).tolist(),
+        "stops_mm": None if stops is None else np.asarray(stops_xyz).tolist(),
+        "excluded_neighbour_mm3": 0.0 if stopped is None else float(np.count_nonzero(stopped) * np.prod(spacing)),
         "iterations": iterations,
         "converged": all(converged),
         "seconds": timings,
@@ -331,15 +494,18 @@ class SegmentStageParameters(SegmentParameters):
     Attributes
     ----------
     seeds_mm : list of [x, y, z]
-        Seed points in world mm (LPS); empty for automatic initialisation.
+        Seed points in world mm (LPS), one per branch at best; empty for automatic initialisation.
+    stops_mm : list of [x, y, z]
+        Stop points in world mm (LPS): the bright structure around each is kept out of the lumen.
     """
 
     seeds_mm: list = field(default_factory=list)
+    stops_mm: list = field(default_factory=list)
 
     def validate(self) -> "SegmentStageParameters":
-        """Raise CarotidError for bad values, seeds included."""
-        if any(len(seed) != 3 for seed in self.seeds_mm):
-            raise CarotidError("bad segmentation parameter: each seed must be [x, y, z] in mm")
+        """Raise CarotidError for bad values, seeds and stop points included."""
+        if any(len(point) != 3 for point in [*self.seeds_mm, *self.stops_mm]):
+            raise CarotidError("bad segmentation parameter: each seed and stop point must be [x, y, z] in mm")
         super().validate()
         return self
 
@@ -349,8 +515,9 @@ def run_stage(case_dir: Path, params: dict, inputs: list[Path]) -> None:
     from carotid.io import read_image
 
     params = SegmentStageParameters(**params).validate()
-    fields = {k: v for k, v in asdict(params).items() if k != "seeds_mm"}
-    result = segment(read_image(inputs[0]), seeds_xyz=params.seeds_mm or None, params=SegmentParameters(**fields))
+    fields = {k: v for k, v in asdict(params).items() if k not in ("seeds_mm", "stops_mm")}
+    result = segment(read_image(inputs[0]), seeds_xyz=params.seeds_mm or None, params=SegmentParameters(**fields),
+                     stops_xyz=params.stops_mm or None)
     write_segmentation(result, case_dir)
 
 

@@ -1,0 +1,187 @@
+"""Where the lumen cannot be: what keeps the front out of touching neighbours.
+
+The GPF potential, a long-range integral, is negative in the thin, blurred gap
+between the artery and an enhancing vein or a neighbouring artery 0.3-2 mm
+away (both sides are bright), and once the front has crossed such a gap it
+runs along the whole neighbour.  Three mechanisms, each a set of voxels where
+the force is set to push the front out, keep it in the lumen:
+
+* ``half_level_barrier``: a blurred wall lies where the intensity has fallen
+  half-way from the lumen to its surroundings, so a voxel below half of the
+  brightest value within a lumen radius is not lumen.  The threshold follows
+  that local maximum, so a tight stenosis dimmed by the blur keeps its own half
+  level, and a fading bolus or an MR bias field does not move it.  It holds a
+  gap that dips below half; it is used while the front captures the vessel.
+* ``under_enhanced`` and ``competing_region``: a wide region (a plateau) that
+  stays below 80 % of the brightest lumen nearby is a neighbour with less
+  contrast, however thin and blurred the gap to it.  Its core is found by a
+  minimum filter; a marker-based watershed between it and the lumen's markers
+  then gives it everything up to the darkest surface between them, the gap.
+* the user's stop points (VMTK's stoppers, 3D Slicer's background seeds) are
+  markers of that same watershed, for a neighbour as bright as the lumen.
+
+A gap whose blurred intensity stays above half of its bright neighbours, to a
+neighbour as bright as the lumen, is not seen by any of them: that limit is
+reported, not hidden.  The filters are scipy's and scikit-image's.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+
+def half_level_barrier(contrast: np.ndarray, spacing_kji, fraction: float = 0.5, sigma_mm: float = 0.3,
+                       reach_mm: float = 1.5) -> np.ndarray:
+    """Voxels darker than ``fraction`` of the brightest lumen-like value around them.
+
+    Parameters
+    ----------
+    contrast : ndarray, shape (nk, nj, ni), float32
+        Image in units of the lumen contrast: ``(I - B) / (A - B)``, 0 background, 1 lumen
+        (``A`` may vary along the vessel).
+    spacing_kji : array_like, shape (3,)
+        Voxel size in mm.
+    fraction : float
+        Half level: 0.5 for a symmetric blur.
+    sigma_mm : float
+        Gaussian smoothing (mm) against noise, at least half a voxel.
+    reach_mm : float
+        Half-width (mm) of the box in which the local maximum is taken: about a
+        lumen radius in a tight stenosis and the width of a gap.
+
+    Returns
+    -------
+    ndarray of bool, same shape
+    """
+    spacing_kji = np.asarray(spacing_kji, float)
+    smooth = _smooth(contrast, spacing_kji, sigma_mm)
+    peak = ndimage.maximum_filter(smooth, size=_box(reach_mm, spacing_kji))
+    return smooth < np.float32(fraction) * peak
+
+
+def half_maximum_speed(contrast: np.ndarray, spacing_kji, sigma_mm: float = 0.3, reach_mm: float = 1.5,
+                       width: float = 0.1) -> np.ndarray:
+    """A force whose zero is the lumen's half-maximum surface: ``tanh((peak / 2 - I) / width)``.
+
+    ``peak`` is the brightest smoothed contrast within ``reach_mm`` (at most the lumen
+    level): the lumen level for a lumen wider than the blur, whose blurred wall lies at
+    half of it; its own dimmed peak for a lumen narrower than the blur (a tight
+    stenosis), whose half-maximum radius stays close to the true one.  On a convex
+    wall the half level lies inside by about ``sigma^2 kappa / 2`` (sigma the blur,
+    kappa the mean curvature), opposite to the GPF potential's outward bias.
+    Negative inside (the front expands), positive outside, like the normalised potential.
+
+    Parameters
+    ----------
+    contrast : ndarray, shape (nk, nj, ni), float32
+        Image in units of the lumen contrast (0 background, 1 lumen).
+    spacing_kji : array_like, shape (3,)
+    sigma_mm : float
+        Gaussian smoothing (mm) against noise, at least half a voxel.
+    reach_mm : float
+        Half-width (mm) of the box in which the peak is taken.
+    width : float
+        Contrast over which the force saturates.
+
+    Returns
+    -------
+    ndarray, float32, same shape, in (-1, 1)
+    """
+    spacing_kji = np.asarray(spacing_kji, float)
+    smooth = _smooth(contrast, spacing_kji, sigma_mm)
+    peak = ndimage.maximum_filter(smooth, size=_box(reach_mm, spacing_kji))
+    return np.tanh((np.float32(0.5) * peak - smooth) / np.float32(width)).astype(np.float32)
+
+
+def _smooth(contrast: np.ndarray, spacing_kji: np.ndarray, sigma_mm: float) -> np.ndarray:
+    """Gaussian-smoothed contrast (at least half a voxel), capped at the lumen level 1."""
+    sigma = np.maximum(sigma_mm, 0.5 * spacing_kji) / spacing_kji
+    return ndimage.gaussian_filter(np.minimum(contrast, np.float32(1.0)), sigma)
+
+
+def _box(half_width_mm: float, spacing_kji: np.ndarray) -> tuple[int, ...]:
+    """Odd box size (voxels per axis) of a half-width in mm, at least 3."""
+    return tuple(2 * np.maximum(np.round(half_width_mm / spacing_kji), 1).astype(int) + 1)
+
+
+def under_enhanced(contrast: np.ndarray, spacing_kji, level: float = 0.8, width_mm: float = 2.0,
+                   reach_mm: float = 10.0, sigma_mm: float = 0.5) -> np.ndarray:
+    """Cores of plateaus dimmer than ``level`` of the brightest lumen nearby: enhancing neighbours.
+
+    A lumen narrower than the blur looks dimmer than the lumen level, but only over
+    a width of the order of the blur.  A region at least ``width_mm`` wide in every
+    direction (all voxels within that half-width above half of its own value) whose
+    intensity stays below ``level`` of the brightest value within ``reach_mm`` is a
+    wide structure with less contrast: a vein, a false lumen, a neighbouring artery
+    further from the bolus.  Only its core is returned (it lies ``width_mm`` inside
+    the neighbour); ``competing_region`` finds the rest of it, up to the gap.
+
+    Parameters
+    ----------
+    contrast : ndarray, shape (nk, nj, ni), float32
+        Image in units of the lumen contrast (0 background, 1 lumen).
+    spacing_kji : array_like, shape (3,)
+    level : float
+        Fraction of the local lumen brightness below which a plateau is a neighbour.
+    width_mm : float
+        Half-width (mm) a plateau must exceed: above about 2.5 blur standard deviations,
+        where the blur no longer dims a lumen.
+    reach_mm : float
+        Half-width (mm) of the box in which the lumen brightness is taken.
+    sigma_mm : float
+        Gaussian smoothing (mm) against noise.
+
+    Returns
+    -------
+    ndarray of bool, same shape
+    """
+    spacing_kji = np.asarray(spacing_kji, float)
+    smooth = _smooth(contrast, spacing_kji, sigma_mm)
+    brightest = ndimage.maximum_filter(_smooth(contrast, spacing_kji, 2.0 * sigma_mm), size=_box(reach_mm, spacing_kji))
+    dim = (smooth < np.float32(level) * brightest) & (smooth > np.float32(0.1))
+    return dim & (ndimage.minimum_filter(smooth, size=_box(width_mm, spacing_kji)) >= np.float32(0.5) * smooth)
+
+
+def competing_region(contrast: np.ndarray, lumen: np.ndarray, others: np.ndarray, spacing_kji,
+                     floor: float = 0.25, sigma_mm: float = 0.5) -> np.ndarray:
+    """The part of the bright structures nearer ``others`` than the ``lumen`` markers.
+
+    A marker-based watershed (scikit-image) on the inverted, smoothed contrast grows
+    both sets of markers together through the voxels brighter than ``floor``; they
+    meet along the darkest surface between them, the gap to a neighbour where there
+    is one, however blurred.  The neighbours' markers are the user's stop points
+    (VMTK's stoppers, 3D Slicer's background seeds) and the cores of under-enhanced
+    plateaus (``under_enhanced``).
+
+    Parameters
+    ----------
+    contrast : ndarray, shape (nk, nj, ni), float32
+        Image in units of the lumen contrast (0 background, 1 lumen).
+    lumen, others : ndarray of bool, same shape
+        Markers of the lumen (seeds, initial region) and of what must stay out of it.
+    spacing_kji : array_like, shape (3,)
+    floor : float
+        Contrast below which voxels take part in neither region.
+    sigma_mm : float
+        Gaussian smoothing (mm) before the watershed.
+
+    Returns
+    -------
+    ndarray of bool, same shape
+    """
+    from skimage.segmentation import watershed
+
+    smooth = _smooth(contrast, np.asarray(spacing_kji, float), sigma_mm)
+    markers = np.where(others, np.int32(2), np.int32(0))
+    markers[lumen] = 1
+    mask = (smooth > np.float32(floor)) | (markers > 0)
+    return watershed(-smooth, markers, mask=mask) == 2
+
+
+def point_mask(points_kji: np.ndarray, shape) -> np.ndarray:
+    """Boolean volume with the voxels nearest the given continuous indices (m, 3) set."""
+    out = np.zeros(shape, bool)
+    idx = np.clip(np.round(np.atleast_2d(points_kji)).astype(int), 0, np.asarray(shape) - 1)
+    out[tuple(idx.T)] = True
+    return out

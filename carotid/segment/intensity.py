@@ -1,0 +1,284 @@
+"""The lumen's intensity, estimated from the image instead of HU constants.
+
+The GPF method itself is modality-agnostic: it needs an image in which the
+lumen is bright and its surroundings dark.  What differs between a CT
+angiogram at any contrast level, a contrast-enhanced MR angiogram and a
+time-of-flight MRA is only where the lumen and its surroundings lie on the
+intensity axis.  This module measures that on the image:
+
+* ``IntensityModel`` holds the lumen level ``A`` (median of the voxels at the
+  seeds or deep in the initial region), its spread (robust standard deviation,
+  noise included) and the background level ``B`` (median of a shell 1.5-4 mm
+  outside the bright region connected to the seeds, in which soft tissue and
+  fat dominate).  Every intensity threshold of the segmentation is a fraction
+  of the contrast ``C = A - B`` (or a multiple of the spread) above ``B``.
+* ``provisional_window`` is the window of the automatic initialisation
+  (no seeds): from the histogram mode (soft tissue) to the bright end of the
+  image; the model is then estimated from the region that initialisation finds.
+* ``local_level`` follows ``A`` along the vessel: the bolus fades by 20-30 %
+  from the common to the distal internal carotid, and an MR bias field varies
+  the level by tens of percent.  It is the Gaussian-weighted mean of the image
+  over the lumen's core (normalised convolution, Knutsson & Westin 1993), so it
+  is defined wherever some lumen lies within a few ``sigma_mm``.
+
+Written here because the estimate is specific to a bright tubular lumen; the
+statistics themselves are numpy/scipy and scikit-image's Otsu threshold.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from carotid.errors import CarotidError
+
+MAD_TO_SD = 1.4826
+# Iodinated blood stays below this in any CT angiography protocol; cortical bone and calcium lie above it.
+CT_NOT_LUMEN_HU = 800.0
+
+
+@dataclass(frozen=True)
+class IntensityModel:
+    """Lumen and background levels of one image, in its own units (HU for CT).
+
+    Attributes
+    ----------
+    lumen : float
+        Median lumen intensity near the seeds.
+    spread : float
+        Robust standard deviation of the lumen sample (noise and enhancement variation).
+    background : float
+        Level of the tissue around the lumen.
+    source : str
+        What the lumen sample came from: "seeds", "region" or "automatic".
+    box : tuple of slices, optional
+        Box around the sample in which ``bright`` was found.
+    bright : ndarray of bool, optional
+        Voxels of that box above the half level ``(A + B) / 2`` connected to the sample.
+    """
+
+    lumen: float
+    spread: float
+    background: float
+    source: str
+    box: tuple | None = None
+    bright: np.ndarray | None = None
+
+    @property
+    def contrast(self) -> float:
+        """Lumen minus background level."""
+        return self.lumen - self.background
+
+    def window(self, low_margin: float, high_margin: float) -> tuple[float, float]:
+        """Window ``(B - low_margin C, A + max(high_margin C, 3 spread))``: the lumen sits just below its top.
+
+        Parameters
+        ----------
+        low_margin, high_margin : float
+            Fractions of the contrast ``C`` below the background and above the lumen level.
+        """
+        c = self.contrast
+        return self.background - low_margin * c, self.lumen + max(high_margin * c, 3.0 * self.spread)
+
+    def as_dict(self) -> dict:
+        """JSON-ready description (with the contrast)."""
+        return {"lumen": self.lumen, "spread": self.spread, "background": self.background, "source": self.source,
+                "contrast": self.contrast}
+
+
+def _check_contrast(lumen: float, background: float, spread: float, where: str) -> None:
+    """Refuse a lumen that is not clearly brighter than its surroundings."""
+    if not lumen - background > max(2.0 * spread, 1e-6 * max(abs(lumen), 1.0)):
+        raise CarotidError(f"the lumen at the {where} ({lumen:.4g}) is not brighter than its surroundings "
+                           f"({background:.4g}, spread {spread:.3g}): check the seeds, or give --hu-window")
+
+
+def robust_level(values: np.ndarray) -> tuple[float, float]:
+    """Median and robust standard deviation (1.4826 MAD) of a sample."""
+    values = np.asarray(values, np.float64)
+    median = float(np.median(values))
+    return median, MAD_TO_SD * float(np.median(np.abs(values - median)))
+
+
+def _box(kji: np.ndarray, shape, margin) -> tuple[slice, ...]:
+    """Bounding box (slices) of integer points (n, 3) grown by ``margin`` voxels per axis, clipped."""
+    lo = np.maximum(kji.min(axis=0) - margin, 0)
+    hi = np.minimum(kji.max(axis=0) + margin + 1, shape)
+    return tuple(slice(int(a), int(b)) for a, b in zip(lo, hi))
+
+
+def bright_region(image: np.ndarray, sample: np.ndarray, threshold: float, spacing_kji,
+                  reach_mm: float = 30.0) -> tuple[tuple[slice, ...], np.ndarray]:
+    """The bright region connected to a lumen sample, within a box around it.
+
+    Parameters
+    ----------
+    image : ndarray, shape (nk, nj, ni)
+    sample : ndarray of bool, same shape
+        Voxels known to be lumen.
+    threshold : float
+        Intensity above which a voxel counts as bright (after a 0.5 mm Gaussian).
+    spacing_kji : array_like, shape (3,)
+        Voxel size in mm.
+    reach_mm : float
+        The box extends this far (mm, per axis) beyond the sample.
+
+    Returns
+    -------
+    box : tuple of slices
+        The box in the image.
+    bright : ndarray of bool, the box's shape
+    """
+    spacing_kji = np.asarray(spacing_kji, float)
+    margin = np.ceil(reach_mm / spacing_kji).astype(int)
+    box = _box(np.argwhere(sample), image.shape, margin)
+    smooth = ndimage.gaussian_filter(image[box].astype(np.float32), 0.5 / spacing_kji)
+    labels, _ = ndimage.label(smooth >= threshold)
+    keep = np.unique(labels[sample[box]])
+    return box, np.isin(labels, keep[keep > 0]) | sample[box]
+
+
+def background_level(image: np.ndarray, box, bright: np.ndarray, spacing_kji,
+                     shell_mm: tuple[float, float] = (1.5, 4.0)) -> float:
+    """Median intensity of a shell outside a bright region (``bright_region``).
+
+    Parameters
+    ----------
+    image : ndarray, shape (nk, nj, ni)
+    box : tuple of slices
+    bright : ndarray of bool, the box's shape
+    spacing_kji : array_like, shape (3,)
+    shell_mm : (float, float)
+        Inner and outer distance (mm) of the shell from the region, at least one and 2.5 voxels.
+
+    Returns
+    -------
+    float
+    """
+    spacing_kji = np.asarray(spacing_kji, float)
+    distance = ndimage.distance_transform_edt(~bright, sampling=spacing_kji)
+    h = spacing_kji.max()
+    shell = (distance >= max(shell_mm[0], h)) & (distance <= max(shell_mm[1], 2.5 * h))
+    if not shell.any():
+        shell = ~bright
+    return float(np.median(image[box][shell])) if shell.any() else float(np.median(image))
+
+
+def local_radius(box, bright: np.ndarray, points_kji: np.ndarray, spacing_kji) -> np.ndarray:
+    """Distance (mm) from each point to the edge of the bright region: the lumen's local radius there.
+
+    Parameters
+    ----------
+    box : tuple of slices
+    bright : ndarray of bool, the box's shape
+    points_kji : ndarray, shape (m, 3)
+        Continuous array indices in the whole image.
+    spacing_kji : array_like, shape (3,)
+
+    Returns
+    -------
+    ndarray, shape (m,)
+    """
+    depth = ndimage.distance_transform_edt(bright, sampling=np.asarray(spacing_kji, float))
+    offset = np.array([s.start for s in box])
+    idx = np.clip(np.round(points_kji).astype(int) - offset, 0, np.asarray(bright.shape) - 1)
+    return depth[tuple(idx.T)]
+
+
+def estimate_from_sample(image: np.ndarray, sample: np.ndarray, spacing_kji, source: str) -> IntensityModel:
+    """Intensity model from voxels known to be lumen.
+
+    Parameters
+    ----------
+    image : ndarray, shape (nk, nj, ni)
+    sample : ndarray of bool, same shape
+        Lumen voxels: the seed spheres, or the inner part of an initial region.
+    spacing_kji : array_like, shape (3,)
+    source : str
+        Recorded in the model ("seeds", "region", "automatic").
+
+    Raises
+    ------
+    CarotidError
+        If the sample is empty or not brighter than its surroundings.
+    """
+    if not sample.any():
+        raise CarotidError(f"no voxel to estimate the lumen intensity from ({source})")
+    lumen, spread = robust_level(image[sample])
+    box, bright = bright_region(image, sample, lumen - 3.0 * spread, spacing_kji)
+    background = background_level(image, box, bright, spacing_kji)
+    # The shell can still hold some partial volume or a neighbour: the threshold is re-derived from it once,
+    # at the half level where the lumen's wall lies.
+    box, bright = bright_region(image, sample, 0.5 * (lumen + background), spacing_kji)
+    background = background_level(image, box, bright, spacing_kji)
+    _check_contrast(lumen, background, spread, source)
+    # The most common intensity is soft tissue (or an MR image's background): a lumen is clearly brighter.
+    _check_contrast(lumen, histogram_mode(image), spread, source)
+    return IntensityModel(lumen, spread, background, source, box, bright)
+
+
+def provisional_window(image: np.ndarray) -> tuple[float, float, float]:
+    """Seed-free window for the automatic initialisation, and the level above which nothing is lumen.
+
+    The window runs from the histogram mode (soft tissue, or the background of an MR
+    angiogram) to the 99.9th percentile, clipped.  In a CT image (recognised by
+    negative intensities, i.e. fat or air in Hounsfield units; magnitude MR images are never
+    negative) voxels above
+    ``CT_NOT_LUMEN_HU`` are bone or calcium whatever the contrast protocol; an MR
+    angiogram has no structure brighter than its enhanced lumen (bone and calcium are
+    dark), so nothing is excluded there.
+
+    Returns
+    -------
+    low, high, ceiling : float
+        Window and the level above which voxels are not lumen (inf for MR).
+    """
+    lo, hi = np.percentile(_subsample(image), [0.5, 99.9])
+    ceiling = CT_NOT_LUMEN_HU if lo < 0.0 else np.inf
+    return histogram_mode(image), float(min(hi, ceiling)), ceiling
+
+
+def _subsample(image: np.ndarray) -> np.ndarray:
+    """About 64 slices' worth of voxels, enough for histogram statistics."""
+    return image[:: max(1, image.shape[0] // 64)].ravel()
+
+
+def histogram_mode(image: np.ndarray) -> float:
+    """Most frequent intensity (smoothed 256-bin histogram between the 0.5th and 99.9th percentiles)."""
+    values = _subsample(image)
+    lo, hi = np.percentile(values, [0.5, 99.9])
+    if hi <= lo:
+        raise CarotidError("image has no contrast to segment")
+    hist, edges = np.histogram(values, bins=256, range=(lo, hi))
+    peak = int(np.argmax(ndimage.gaussian_filter1d(hist.astype(float), 2.0)))
+    return float(0.5 * (edges[peak] + edges[peak + 1]))
+
+
+def local_level(image: np.ndarray, core: np.ndarray, spacing_kji, sigma_mm: float, default: float) -> np.ndarray:
+    """Lumen level followed along the vessel: Gaussian-weighted mean of ``image`` over ``core``.
+
+    Parameters
+    ----------
+    image : ndarray, shape (nk, nj, ni)
+    core : ndarray of bool, same shape
+        Voxels deep inside the lumen.
+    spacing_kji : array_like, shape (3,)
+    sigma_mm : float
+        Scale (mm) of the Gaussian: the length over which the level may change.
+    default : float
+        Level where no core voxel lies within a few ``sigma_mm``.
+
+    Returns
+    -------
+    ndarray, float32, same shape
+    """
+    sigma = sigma_mm / np.asarray(spacing_kji, float)
+    weight = ndimage.gaussian_filter(core.astype(np.float32), sigma, mode="nearest")
+    total = ndimage.gaussian_filter(np.where(core, image, 0).astype(np.float32), sigma, mode="nearest")
+    floor = np.float32(1e-4)  # a core voxel within about 4 sigma
+    level = np.where(weight > floor, total / np.maximum(weight, floor), np.float32(default))
+    # Where the core is barely within reach the estimate rests on few voxels: blend towards the default there.
+    blend = np.clip(weight / np.float32(1e-3), 0, 1)
+    return (blend * level + (1 - blend) * np.float32(default)).astype(np.float32)
