@@ -1,7 +1,8 @@
 """Centerlines on disk: ``centerlines.vtp`` (VMTK's layout) and ``geometry.json``.
 
 The VTP holds one polyline cell per branch, in mm, with the point array
-``MaximumInscribedSphereRadius`` (mm) and the cell arrays ``BranchId`` (int)
+``MaximumInscribedSphereRadius`` (mm), ``CenterlineSectionArea`` (mm^2, as
+VMTK's ``vmtkcentersections``) and the cell arrays ``BranchId`` (int)
 and ``BranchName`` (string), so ParaView and VMTK scripts read it as they
 read VMTK's own centerlines.
 """
@@ -21,6 +22,7 @@ from carotid.io import atomic_path, write_json
 VTP_NAME = "centerlines.vtp"
 JSON_NAME = "geometry.json"
 RADIUS = "MaximumInscribedSphereRadius"
+AREA = "CenterlineSectionArea"
 
 
 def to_polydata(cl: Centerlines) -> pv.PolyData:
@@ -31,6 +33,8 @@ def to_polydata(cl: Centerlines) -> pv.PolyData:
     lines = np.concatenate([np.concatenate([[n], s + np.arange(n)]) for n, s in zip(sizes, starts)])
     poly = pv.PolyData(points, lines=lines)
     poly.point_data[RADIUS] = np.concatenate([b.radii for b in cl.branches]).astype(float)
+    if all(b.areas is not None for b in cl.branches):
+        poly.point_data[AREA] = np.concatenate([b.areas for b in cl.branches]).astype(float)
     poly.cell_data["BranchId"] = np.arange(len(cl.branches), dtype=np.int32)
     poly.cell_data["BranchName"] = np.array([b.name for b in cl.branches])
     return poly
@@ -83,10 +87,12 @@ def read_centerlines(path: str | Path) -> Centerlines:
         raise CarotidError(f"{vtp}: not a carotid centerline file (arrays {RADIUS} and BranchName missing)")
     names = [str(n) for n in poly.cell_data["BranchName"]]
     radii = np.asarray(poly.point_data[RADIUS], float)
+    areas = np.asarray(poly.point_data[AREA], float) if AREA in poly.point_data else None
     branches = []
     for k, name in enumerate(names):
         ids = np.asarray(poly.get_cell(k).point_ids)
-        branches.append(Branch(name, np.asarray(poly.points[ids], float), radii[ids]))
+        branches.append(Branch(name, np.asarray(poly.points[ids], float), radii[ids],
+                               None if areas is None else areas[ids]))
     info: dict = {}
     geometry = vtp.parent / JSON_NAME
     if geometry.exists():

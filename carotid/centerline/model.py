@@ -23,11 +23,14 @@ class Branch:
         every other branch runs from the bifurcation outward to its outlet end.
     radii : ndarray, shape (n,)
         Radius of the maximal inscribed sphere at each point, mm.
+    areas : ndarray, shape (n,), optional
+        Area of the lumen section normal to the axis at each point, mm^2 (``axes.section_areas``).
     """
 
     name: str
     points: np.ndarray
     radii: np.ndarray
+    areas: np.ndarray | None = None
 
     @property
     def length_mm(self) -> float:

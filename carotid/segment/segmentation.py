@@ -18,9 +18,10 @@ from scipy import ndimage
 
 from carotid.errors import CarotidError
 from carotid.io import Volume, atomic_dir, write_image, write_json
-from carotid.segment.calcium import hyperdense_edge
 from carotid.segment.barrier import (competing_region, half_level_barrier, half_maximum_speed, point_mask,
                                      under_enhanced)
+from carotid.segment.calcium import hyperdense_edge
+from carotid.segment.deblur import refine
 from carotid.segment.init import automatic_region, check_points, mask_levelset, seed_levelset, seed_sample
 from carotid.segment.intensity import (IntensityModel, estimate_from_sample, local_level, local_radius,
                                        provisional_window)
@@ -54,9 +55,10 @@ class SegmentParameters:
         ``calcium_edge`` calcium is already at the background and the window only needs to clip; a fold then
         also darkens the lumen's side of a calcification's blur, which can close a calcified stenosis.
     calcium_edge : bool
-        Set calcium and bone to the background out to their true edge, half-way between the lumen level and
-        their own peak (``calcium`` module), instead of relying on the fold alone, whose edge lies inside the
-        lumen next to a calcification and grades a calcified stenosis too tight.
+        Set calcium and bone to the background out to their steepest edge and subtract their blur from the
+        surroundings (``calcium`` module), instead of relying on the fold alone, whose edge lies inside the
+        lumen next to a calcification (too tight a calcified stenosis) and whose blur on the tissue side
+        looks like lumen (a leak into a vertebra, too mild a calcified stenosis).
     barrier : float
         Half level of the barrier (``barrier.half_level_barrier``): voxels darker than this fraction of the
         brightest lumen-like value within ``barrier_reach_mm`` push the front out (a blurred gap to an enhancing
@@ -72,6 +74,10 @@ class SegmentParameters:
         refining stage.  The potential's zero lies outside a curved, blurred wall and the half maximum inside
         it, both by about the blur squared times the curvature: their blend stays on a tight stenosis's wall.
         0: the paper's potential alone.
+    deblur : bool
+        Move the converged front to the wall of the blurred lumen model that best explains the image
+        (``deblur`` module): an edge-based front lies inside a straight vessel's wall and outside a short,
+        tight stenosis's by about the blur squared times the wall's curvature.
     denoise_iterations : int
         Curvature anisotropic diffusion iterations before the potential (0: off).
     kernel_radius_mm : float
@@ -133,6 +139,7 @@ class SegmentParameters:
     barrier_reach_mm: float = 1.5
     plateau: float = 0.8
     half_maximum: float = 0.5
+    deblur: bool = True
     denoise_iterations: int = 0
     kernel_radius_mm: float = 10.0
     sigma_mm: float = 0.6
@@ -284,6 +291,19 @@ def barrier_of(image01: np.ndarray, window, model: IntensityModel, spacing_kji, 
     return out
 
 
+def deblur(image: np.ndarray, phi: np.ndarray, spacing_kji, model: IntensityModel, params: SegmentParameters,
+           stopped: np.ndarray | None, dense: np.ndarray | None) -> np.ndarray:
+    """The converged front moved to the wall of the blurred lumen model that best explains ``image``
+    (``deblur.refine``), with the lumen level followed along the vessel and neighbours and calcium left out."""
+    phi = signed_distance(phi, spacing_kji, params.far_mm)  # the evolution's level set is clipped to its band
+    depth = max(2.0 * model.blur, float(np.max(spacing_kji)))
+    lumen = local_level(image, phi < -depth, spacing_kji, params.level_mm or 1e3, model.lumen)
+    exclude = stopped
+    if dense is not None:
+        exclude = dense if exclude is None else exclude | dense
+    return refine(image, phi, spacing_kji, lumen, model.background, model.blur, exclude)
+
+
 def lumen_window(model: IntensityModel, params: SegmentParameters, level=None) -> tuple:
     """``(low, high)`` of the window: the override, or the model's window around ``level`` (default: its lumen).
 
@@ -393,9 +413,10 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
         sample = lumen_sample(source, region)
     model = estimate_from_sample(source, sample, spacing, {"seed": "seeds"}.get(how, how))
     window = lumen_window(model, params)
-    hyperdense = None
+    hyperdense, dense = None, None
     if params.calcium_edge:
-        image, hyperdense = hyperdense_edge(image, window[1], model.lumen, model.background, spacing)
+        image, dense, hyperdense = hyperdense_edge(image, window[1], model.lumen, model.background, spacing,
+                                                   model.blur)
     stops = None
     if stops_xyz is not None and len(stops_xyz):
         stops_xyz = np.atleast_2d(np.asarray(stops_xyz, float))
@@ -434,6 +455,8 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
         iterations.append(result.iterations)
         converged.append(result.converged)
     del ghat, g, image01
+    if params.deblur and model.blur:
+        phi = deblur(image, phi, spacing, model, params, stopped, dense)
     timings["evolution_s"] = time.perf_counter() - t1
     intensity = {**model.as_dict(), "window": [float(w) for w in lumen_window(model, params)], "hyperdense": hyperdense,
                  "window_source": "override" if params.window else "estimated"}

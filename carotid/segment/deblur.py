@@ -1,0 +1,126 @@
+"""The wall where a blurred model of the lumen explains the image (partial-volume refinement).
+
+Every edge-based front, the paper's GPF included, settles where the blurred
+image changes fastest, and on a curved wall that is not where the wall is:
+blur moves the steepest point (and the half level) towards the centre of
+curvature by about ``sigma^2 kappa / 2``, ``kappa`` the sum of the principal
+curvatures.  A straight tube of radius ``R`` comes out ``sigma^2 / (2 R)``
+too narrow; a short, tight stenosis, whose wall is sharply concave along the
+axis, too wide, because blur fills the notch from the wider lumen on either
+side.  With a scanner blur of 0.6-0.8 mm a 2.3 mm throat reads 0.3-0.6 mm
+too wide, and NASCET 10-20 points too low.
+
+``refine`` removes that bias.  It models the image near the wall as
+``M = B + (A - B) G_sigma * H(-phi)``: the lumen indicator (with a
+partial-volume ramp one voxel wide) blurred by a Gaussian of the image's own
+blur (``intensity.edge_blur``), between the lumen level ``A`` followed along
+the vessel and the background ``B`` measured in a shell just beyond the
+blur's reach.  It then descends the least-squares misfit ``|I - M|^2``
+restricted to a band around the wall: the speed of the wall is
+``G_sigma * (I - M) / (A - B)``, positive (outward) where the image is
+brighter than the model.  The displacement is bounded by one blur width
+from the front the evolution converged to, so the refinement corrects a
+position and never changes what the front captured; voxels where a
+neighbour's blur (a vein held out of the lumen) or a calcification's
+reaches are left out of the misfit.
+
+Written here because no segmentation library offers a blur-model
+refinement of a level set; the filters are scipy's.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from carotid.segment.intensity import local_level
+
+# Scale (mm) of the extra smoothing of the wall's speed: the model corrects a position, not the noise.
+SMOOTH_MM = 1.0
+
+
+def refine(image: np.ndarray, phi: np.ndarray, spacing_kji, lumen, background: float, blur_mm: float,
+           exclude: np.ndarray | None = None, iterations: int = 20, gain: float = 2.0) -> np.ndarray:
+    """Level set moved to the wall that best explains the image under a Gaussian blur.
+
+    Parameters
+    ----------
+    image : ndarray, shape (nk, nj, ni)
+        The image (calcium already removed), in its own units.
+    phi : ndarray, float32, same shape
+        Signed distance (mm, negative inside) of the converged front.
+    spacing_kji : array_like, shape (3,)
+    lumen : float or ndarray, float32, same shape
+        Lumen level ``A`` (followed along the vessel).
+    background : float
+        Background level where no local one can be measured.
+    blur_mm : float
+        Standard deviation of the image's Gaussian blur, mm.
+    exclude : ndarray of bool, same shape, optional
+        Voxels whose intensity the model does not describe (neighbours, calcium); their surroundings out to
+        two blur widths are left out of the misfit.
+    iterations : int
+        Gradient steps.
+    gain : float
+        Step length in blur widths per unit of normalised misfit.
+
+    Returns
+    -------
+    ndarray, float32, same shape
+        The refined level set (no longer a signed distance; within ``blur_mm`` of ``phi``).
+    """
+    spacing = np.asarray(spacing_kji, float)
+    sigma_mm = float(blur_mm)
+    band = 2.0 * sigma_mm + float(spacing.max())
+    box = _box(phi < band + 3.0 * sigma_mm, spacing, 3.0 * sigma_mm)
+    if box is None:
+        return phi
+    phi0 = np.asarray(phi[box], np.float32)
+    crop = np.asarray(image[box], np.float32)
+    level = lumen[box] if np.ndim(lumen) else np.float32(lumen)
+    weight = np.abs(phi0) < band
+    if exclude is not None and exclude[box].any():
+        weight &= ndimage.distance_transform_edt(~exclude[box], sampling=spacing) > 2.0 * sigma_mm
+    weight &= phi0 < np.float32(0.5 * sigma_mm)
+    tissue = local_background(crop, phi0, spacing, sigma_mm, None if exclude is None else exclude[box], background)
+    contrast = np.maximum(level - tissue, np.float32(1e-6))
+    sigma = sigma_mm / spacing
+    smoothing = np.hypot(sigma_mm, SMOOTH_MM) / spacing
+    ramp = np.float32(spacing.min())
+    step = np.float32(gain * sigma_mm)
+    out = phi0.copy()
+    for _ in range(iterations):
+        lumen_part = ndimage.gaussian_filter(np.clip(np.float32(0.5) - out / ramp, 0, 1), sigma)
+        misfit = np.where(weight, crop - tissue - contrast * lumen_part, 0)
+        speed = ndimage.gaussian_filter(misfit, smoothing) / contrast
+        out = np.clip(out - step * speed, phi0 - np.float32(sigma_mm), phi0 + np.float32(sigma_mm))
+    result = np.array(phi, np.float32, copy=True)
+    result[box] = out
+    return result
+
+
+def local_background(image: np.ndarray, phi: np.ndarray, spacing, blur_mm: float, exclude: np.ndarray | None,
+                     default: float, width_mm: float = 2.0, scale_mm: float = 3.0) -> np.ndarray:
+    """Tissue level around the lumen: Gaussian-weighted mean over a shell beyond the blur's reach.
+
+    The shell lies between ``2.5 blur_mm`` and ``2.5 blur_mm + width_mm`` outside the wall (``exclude`` left
+    out); ``scale_mm`` is the Gaussian of the normalised convolution (``intensity.local_level``).
+
+    Returns
+    -------
+    ndarray, float32, ``image``'s shape
+    """
+    inner = 2.5 * blur_mm
+    shell = (phi > inner) & (phi < inner + width_mm)
+    if exclude is not None:
+        shell &= ~exclude
+    return local_level(image, shell, spacing, scale_mm, default)
+
+
+def _box(region: np.ndarray, spacing, margin_mm: float):
+    """Bounding box of ``region`` grown by ``margin_mm``; None if it is empty."""
+    found = ndimage.find_objects(region.astype(np.uint8))
+    if not found or found[0] is None:
+        return None
+    grow = np.ceil(margin_mm / np.asarray(spacing, float)).astype(int)
+    return tuple(slice(max(s.start - g, 0), min(s.stop + g, n)) for s, g, n in zip(found[0], grow, region.shape))

@@ -1,0 +1,166 @@
+"""The blur model of the segmentation against closed-form images: measured blur, calcium edge, refined wall.
+
+Each image is a lumen (and a calcification) blurred by a known Gaussian, so every answer is known exactly;
+each test also runs the step with its mechanism switched off and checks that the answer is then wrong.
+"""
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from carotid.segment import calcium
+from carotid.segment.calcium import hyperdense_edge
+from carotid.segment.deblur import refine
+from carotid.segment.intensity import edge_blur
+
+B, A, P = 40.0, 300.0, 1000.0  # tissue, lumen and calcium levels (HU)
+SPACING = np.array([0.3, 0.25, 0.25])  # (k, j, i) mm, anisotropic
+
+
+def grid(shape, spacing=SPACING):
+    """Voxel centres (mm) of a (k, j, i) grid centred on the origin, as three arrays."""
+    axes = [(np.arange(n) - (n - 1) / 2) * h for n, h in zip(shape, spacing)]
+    return np.meshgrid(*axes, indexing="ij")
+
+
+def occupancy(sdf, spacing=SPACING):
+    """Partial-volume occupancy of each voxel from a signed distance (mm): a ramp one voxel wide."""
+    return np.clip(0.5 - sdf / float(np.mean(spacing)), 0.0, 1.0).astype(np.float32)
+
+
+def blurred(fraction, sigma_mm, spacing=SPACING):
+    return ndimage.gaussian_filter(fraction, sigma_mm / np.asarray(spacing))
+
+
+def tube_sdf(shape, radius):
+    """Signed distance (mm) of a straight tube of ``radius`` along k."""
+    _, y, x = grid(shape)
+    return np.hypot(x, y) - radius
+
+
+@pytest.mark.parametrize("sigma", [0.4, 0.6, 0.8])
+def test_edge_blur_measures_the_blur_of_a_noisy_tube(sigma):
+    shape = (40, 64, 64)
+    sdf = tube_sdf(shape, 4.0)
+    rng = np.random.default_rng(1)
+    image = (B + (A - B) * blurred(occupancy(sdf), sigma) + rng.normal(0, 20, shape)).astype(np.float32)
+    bright = ndimage.gaussian_filter(image, 1) > 0.5 * (A + B)
+    estimate = edge_blur(image, (slice(None),) * 3, bright, 0.5 * (A + B), SPACING)
+    # The voxel ramp adds its own width (h / sqrt(12) ~ 0.08 mm) in quadrature.
+    assert estimate == pytest.approx(np.hypot(sigma, 0.08), abs=0.06)
+
+
+def test_edge_blur_needs_a_clean_edge():
+    """A region without plateaus around its edge (a thin wire) gives no estimate rather than a wrong one."""
+    shape = (30, 40, 40)
+    image = (B + (A - B) * blurred(occupancy(tube_sdf(shape, 0.6)), 0.6)).astype(np.float32)
+    assert edge_blur(image, (slice(None),) * 3, image > 0.5 * (A + B), 0.5 * (A + B), SPACING) is None
+
+
+def calcified_tube(sigma):
+    """A tube of radius 3 mm whose wall holds a calcium sphere (radius 1.5 mm) reaching 1 mm into the lumen.
+
+    Returns the image and the lumen alone blurred (no calcium).  On the line from the axis to the sphere's
+    centre (along +i) the lumen ends where the calcium begins, 2 mm from the axis.
+    """
+    shape = (48, 64, 64)
+    k, j, i = grid(shape)
+    sphere = np.sqrt(k ** 2 + j ** 2 + (i - 3.5) ** 2) - 1.5
+    lumen = np.maximum(tube_sdf(shape, 3.0), -sphere)
+    lumen_only = B + (A - B) * blurred(occupancy(lumen), sigma)
+    image = lumen_only + (P - B) * blurred(occupancy(sphere), sigma)
+    return image.astype(np.float32), lumen_only.astype(np.float32)
+
+
+def crossing(profile, positions, level):
+    """First position where ``profile`` falls below ``level`` (linear interpolation)."""
+    below = np.flatnonzero(profile < level)[0]
+    x0, x1, y0, y1 = positions[below - 1], positions[below], profile[below - 1], profile[below]
+    return x0 + (y0 - level) / (y0 - y1) * (x1 - x0)
+
+
+def edge_towards_calcium(image):
+    """Half-level crossing (mm from the axis) of ``image`` on the axis-to-calcium line."""
+    centre = (np.array(image.shape) - 1) / 2
+    positions = np.arange(0.0, 3.0, 0.02)
+    coords = np.stack([np.full_like(positions, centre[0]), np.full_like(positions, centre[1]),
+                       centre[2] + positions / SPACING[2]])
+    return crossing(ndimage.map_coordinates(image, coords, order=1), positions, 0.5 * (A + B))
+
+
+def calcium_edge_error(image, sigma):
+    """Where the corrected image puts the lumen's edge next to the calcium, minus where it is (mm)."""
+    corrected, _, info = hyperdense_edge(image, A + 0.3 * (A - B), A, B, SPACING, sigma)
+    assert info["structures"] == 1
+    return edge_towards_calcium(corrected) - 2.0
+
+
+@pytest.mark.parametrize("sigma", [0.45, 0.6])
+def test_calcium_and_its_blur_leave_the_lumen_edge_where_it_is(sigma, monkeypatch):
+    image, lumen_only = calcified_tube(sigma)
+    assert abs(calcium_edge_error(image, sigma)) < 0.15
+    # The calcium's blur is gone around it: the tissue beyond it is back at the tissue level.
+    corrected, _, _ = hyperdense_edge(image, A + 0.3 * (A - B), A, B, SPACING, sigma)
+    beyond = (24, 32, int(round(31.5 + 5.6 / SPACING[2])))
+    assert abs(corrected[beyond] - B) < 0.1 * (A - B) < abs(image[beyond] - B)
+    # Mutation: without the subtraction of its blur, the calcium's blur stays in the tissue (a lumen-like shell
+    # the front follows).
+    kept, _, _ = hyperdense_edge(image, A + 0.3 * (A - B), A, B, SPACING, None)
+    assert abs(kept[beyond] - B) > 0.5 * abs(image[beyond] - B)
+    # Mutations that put the lumen's edge 0.3 mm or more into the calcification: its extent to the voxel (no
+    # sub-voxel edge); the sub-voxel edge without its curvature term.
+    monkeypatch.setattr(calcium, "edge_fraction", lambda image, extent, *args: extent.astype(np.float32))
+    assert calcium_edge_error(image, sigma) > 0.3
+    monkeypatch.undo()
+    exact = calcium.edge_fraction
+    monkeypatch.setattr(calcium, "edge_fraction",
+                        lambda image, extent, near, spacing, blur, s: exact(image, extent, near, spacing, blur, s,
+                                                                           curvature=False))
+    assert calcium_edge_error(image, sigma) > 0.3
+
+
+def test_nothing_hyperdense_leaves_the_image_alone():
+    _, lumen_only = calcified_tube(0.6)
+    corrected, extent, info = hyperdense_edge(lumen_only, A + 0.3 * (A - B), A, B, SPACING, 0.6)
+    assert info["structures"] == 0 and not extent.any()
+    np.testing.assert_array_equal(corrected, lumen_only)
+
+
+def radius_of(phi, spacing=SPACING):
+    """Mean radius (mm) of the zero level of ``phi`` on rays from the tube's axis in the middle section."""
+    centre = (np.array(phi.shape) - 1) / 2
+    angles = np.linspace(0, 2 * np.pi, 36, endpoint=False)
+    r = np.arange(0.0, 3.5, 0.01)
+    coords = np.stack([np.full((36, r.size), centre[0]),
+                       centre[1] + np.outer(np.sin(angles), r) / spacing[1],
+                       centre[2] + np.outer(np.cos(angles), r) / spacing[2]]).reshape(3, -1)
+    values = ndimage.map_coordinates(phi, coords, order=1).reshape(36, r.size)
+    return float(np.mean([crossing(-v, r, 0.0) for v in values]))
+
+
+@pytest.mark.parametrize("radius,sigma", [(1.2, 0.7), (2.5, 0.5)])
+def test_refinement_moves_an_edge_front_to_the_true_wall(radius, sigma):
+    """A blurred tube's half-level contour lies sigma^2 / (2 R) inside its wall; the refinement removes that."""
+    shape = (24, 64, 64)
+    rng = np.random.default_rng(3)
+    image = (B + (A - B) * blurred(occupancy(tube_sdf(shape, radius)), sigma)
+             + rng.normal(0, 15, shape)).astype(np.float32)
+    half = ndimage.gaussian_filter(image, 0.5 / SPACING) > 0.5 * (A + B)
+    start = (ndimage.distance_transform_edt(~half, sampling=SPACING)
+             - ndimage.distance_transform_edt(half, sampling=SPACING)).astype(np.float32)
+    before = radius_of(start)
+    assert radius - before > 0.5 * sigma ** 2 / (2 * radius)  # premise: the edge front is too narrow
+    after = radius_of(refine(image, start, SPACING, A, B, sigma))
+    assert after == pytest.approx(radius, abs=0.06)
+    # Mutation: no descent steps leaves the front where it was.
+    assert radius_of(refine(image, start, SPACING, A, B, sigma, iterations=0)) == pytest.approx(before, abs=1e-6)
+
+
+def test_refinement_narrows_a_front_that_is_too_wide_and_stays_within_a_blur_width():
+    shape = (24, 64, 64)
+    sdf = tube_sdf(shape, 2.0)
+    image = (B + (A - B) * blurred(occupancy(sdf), 0.6)).astype(np.float32)
+    assert radius_of(refine(image, (sdf - 0.35).astype(np.float32), SPACING, A, B, 0.6)) == pytest.approx(2.0, abs=0.06)
+    # A front 2 mm too wide may move by one blur width only: the refinement corrects, it does not re-segment.
+    far = refine(image, (sdf - 2.0).astype(np.float32), SPACING, A, B, 0.6)
+    assert radius_of(far) >= 4.0 - 0.6 - 0.02
