@@ -11,7 +11,7 @@ from scipy import ndimage
 from carotid.segment import calcium
 from carotid.segment.calcium import hyperdense_edge
 from carotid.segment.deblur import refine
-from carotid.segment.intensity import edge_blur
+from carotid.segment.intensity import edge_blur, wide_gaussian
 
 B, A, P = 40.0, 300.0, 1000.0  # tissue, lumen and calcium levels (HU)
 SPACING = np.array([0.3, 0.25, 0.25])  # (k, j, i) mm, anisotropic
@@ -164,3 +164,32 @@ def test_refinement_narrows_a_front_that_is_too_wide_and_stays_within_a_blur_wid
     # A front 2 mm too wide may move by one blur width only: the refinement corrects, it does not re-segment.
     far = refine(image, (sdf - 2.0).astype(np.float32), SPACING, A, B, 0.6)
     assert radius_of(far) >= 4.0 - 0.6 - 0.02
+
+
+def test_a_bright_spot_inside_the_lumen_is_not_calcium(monkeypatch):
+    """Contrast brighter than the window's top 4 mm from any wall (streaming, noise on a coarse scan) stays lumen."""
+    shape = (40, 64, 64)
+    k, j, i = grid(shape)
+    spot = np.sqrt(k ** 2 + j ** 2 + i ** 2) - 0.8
+    image = (B + (A - B) * blurred(occupancy(tube_sdf(shape, 6.0)), 0.6)
+             + (P - A) * blurred(occupancy(spot), 0.6)).astype(np.float32)
+    corrected, extent, _ = hyperdense_edge(image, A + 0.3 * (A - B), A, B, SPACING, 0.6)
+    assert not extent.any()
+    np.testing.assert_array_equal(corrected, image)
+    # Mutation: taken for calcium, the spot is cut out of the lumen, a hole no brighter than the half level.
+    monkeypatch.setattr(calcium, "in_the_wall", lambda extent, *args: extent)
+    cut, _, _ = hyperdense_edge(image, A + 0.3 * (A - B), A, B, SPACING, 0.6)
+    assert cut[tuple(n // 2 for n in shape)] <= 0.5 * (A + B)
+
+
+@pytest.mark.parametrize("sigma", [(12.0, 12.0, 8.0), (22.0, 6.0, 14.0)])
+def test_wide_gaussian_matches_the_direct_filter(sigma):
+    """The coarse-grid Gaussian of ``local_level`` against scipy's direct filter on a smooth field with a
+    masked-out half (a lumen core ending inside the field of view)."""
+    rng = np.random.default_rng(5)
+    field = ndimage.gaussian_filter(rng.normal(0, 100, (90, 110, 70)).astype(np.float32), 3) + 300
+    field[:, :, 40:] = 0
+    direct = ndimage.gaussian_filter(field, sigma, mode="nearest")
+    coarse = wide_gaussian(field, sigma)
+    assert coarse.dtype == np.float32 and coarse.shape == field.shape
+    assert np.abs(coarse - direct).max() < 0.01 * np.ptp(direct)

@@ -59,7 +59,8 @@ def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: flo
     reach_mm : float
         A structure's edge, and its blur, are looked for within this distance (mm) of its voxels above ``top``.
     sigma_mm : float
-        Gaussian smoothing (mm) of the image on which the decisions are taken.
+        Gaussian smoothing (mm) of the image on which the decisions are taken; at least half the coarsest
+        voxel, so that single noisy voxels of a coarse scan are not taken for calcium.
 
     Returns
     -------
@@ -71,6 +72,7 @@ def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: flo
         subtracted (image units).
     """
     spacing_kji = np.asarray(spacing_kji, float)
+    sigma_mm = max(sigma_mm, 0.5 * float(spacing_kji.max()))
     image = np.asarray(image, np.float32)
     smooth = ndimage.gaussian_filter(image, sigma_mm / spacing_kji)
     hot = smooth > np.float32(top)
@@ -86,6 +88,8 @@ def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: flo
                                      spacing_kji, sigma_mm)
     del distance
     extent = regions == STRUCTURE
+    extent[box] = in_the_wall(extent[box], near[box] & (smooth[box] < np.float32(background + 0.25 * (lumen - background))),
+                              spacing_kji, reach_mm)
     amplitude_max = 0.0
     if blur_mm and extent.any():
         fraction = np.zeros(image.shape, np.float32)
@@ -109,6 +113,31 @@ def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: flo
     volume = float(np.count_nonzero(extent) * np.prod(spacing_kji))
     return out.astype(np.float32), extent, {"structures": int(n), "volume_mm3": volume,
                                             "blur_amplitude_max": amplitude_max}
+
+
+def in_the_wall(extent: np.ndarray, tissue: np.ndarray, spacing_kji, reach_mm: float) -> np.ndarray:
+    """The structures of ``extent`` with tissue within ``reach_mm``.
+
+    Calcium lies in the vessel's wall and bone in the tissue: both have tissue next to them.  A bright spot
+    with nothing but lumen around it (contrast streaming, noise on a coarse scan) is lumen, and cutting it
+    out, or subtracting a blur fitted to the lumen around it, would darken the lumen.
+
+    Parameters
+    ----------
+    extent, tissue : ndarray of bool, shape (nk, nj, ni)
+        Structures, and tissue-level voxels.
+    spacing_kji : array_like, shape (3,)
+    reach_mm : float
+
+    Returns
+    -------
+    ndarray of bool, same shape
+    """
+    labels, n = ndimage.label(extent)
+    if n == 0 or not tissue.any():
+        return np.zeros_like(extent)
+    gap = ndimage.minimum(ndimage.distance_transform_edt(~tissue, sampling=spacing_kji), labels, np.arange(1, n + 1))
+    return np.concatenate([[False], np.asarray(gap) <= reach_mm])[labels]
 
 
 def structure_regions(image: np.ndarray, smooth: np.ndarray, hot: np.ndarray, near: np.ndarray, clear: np.ndarray,
@@ -215,16 +244,12 @@ def edge_fraction(image: np.ndarray, extent: np.ndarray, near: np.ndarray, spaci
     """
     spacing = np.asarray(spacing_kji, float)
     sigma = sigma_mm / spacing
-    boundary = near & (extent ^ ndimage.binary_erosion(extent)) | (near & ~extent & ndimage.binary_dilation(extent))
+    boundary = near & ndimage.binary_dilation(extent) & ~ndimage.binary_erosion(extent)
     fraction = extent.astype(np.float32)
     if not boundary.any():
         return fraction
-    derivative = {}
-    for a in range(3):
-        order = [0, 0, 0]
-        order[a] = 1
-        derivative[a] = ndimage.gaussian_filter(image, sigma, order=order)[boundary] / spacing[a]
-    gradient = np.stack([derivative[a] for a in range(3)], axis=1)
+    gradient = np.stack([ndimage.gaussian_filter(image, sigma, order=tuple(int(a == b) for b in range(3)))[boundary]
+                         / spacing[a] for a in range(3)], axis=1)
     slope = np.linalg.norm(gradient, axis=1)
     n = gradient / np.maximum(slope, 1e-12)[:, None]
     second = np.zeros_like(slope)

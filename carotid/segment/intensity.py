@@ -19,7 +19,9 @@ intensity axis.  This module measures that on the image:
   from the common to the distal internal carotid, and an MR bias field varies
   the level by tens of percent.  It is the Gaussian-weighted mean of the image
   over the lumen's core (normalised convolution, Knutsson & Westin 1993), so it
-  is defined wherever some lumen lies within a few ``sigma_mm``.
+  is defined wherever some lumen lies within a few ``sigma_mm``.  Its wide
+  Gaussian is computed on a coarser grid (``wide_gaussian``): scipy has no
+  multiresolution Gaussian, and the direct one took a third of a 256^3 run.
 
 * ``edge_blur`` measures the scanner's blur on the lumen's own edge: the
   width of a Gaussian step fitted to the median intensity profile across it.
@@ -353,10 +355,47 @@ def local_level(image: np.ndarray, core: np.ndarray, spacing_kji, sigma_mm: floa
     ndarray, float32, same shape
     """
     sigma = sigma_mm / np.asarray(spacing_kji, float)
-    weight = ndimage.gaussian_filter(core.astype(np.float32), sigma, mode="nearest")
-    total = ndimage.gaussian_filter(np.where(core, image, 0).astype(np.float32), sigma, mode="nearest")
+    weight = wide_gaussian(core.astype(np.float32), sigma)
+    total = wide_gaussian(np.where(core, image, 0).astype(np.float32), sigma)
     floor = np.float32(1e-4)  # a core voxel within about 4 sigma
     level = np.where(weight > floor, total / np.maximum(weight, floor), np.float32(default))
     # Where the core is barely within reach the estimate rests on few voxels: blend towards the default there.
     blend = np.clip(weight / np.float32(1e-3), 0, 1)
     return (blend * level + (1 - blend) * np.float32(default)).astype(np.float32)
+
+
+def wide_gaussian(array: np.ndarray, sigma, voxels_per_step: float = 3.0) -> np.ndarray:
+    """Gaussian filter (``mode="nearest"``) of a wide kernel, computed on a coarser grid.
+
+    A Gaussian of standard deviation ``sigma`` voxels varies over ``sigma``: the array is averaged over blocks
+    of ``f = sigma / voxels_per_step`` voxels per axis, filtered there by the Gaussian whose variance plus
+    the block's ``(f^2 - 1) / 12`` is ``sigma^2``, and interpolated back (linear, block-aligned).  On a 256^3
+    array with ``sigma`` = 22 voxels this is 4 times faster than the direct filter, and on smooth data within
+    one percent of its range, most of it at the array's faces, where the last half block is extrapolated flat;
+    axes where ``sigma < 2 voxels_per_step`` are not coarsened.
+
+    Parameters
+    ----------
+    array : ndarray, float32, shape (nk, nj, ni)
+    sigma : array_like, shape (3,)
+        Standard deviation per axis, voxels.
+    voxels_per_step : float
+        Standard deviation, in coarse voxels, below which no axis is coarsened.
+
+    Returns
+    -------
+    ndarray, float32, same shape
+    """
+    sigma = np.asarray(sigma, float)
+    factor = np.maximum(np.floor(sigma / voxels_per_step), 1).astype(int)
+    if np.all(factor == 1):
+        return ndimage.gaussian_filter(array, sigma, mode="nearest")
+    shape = np.array(array.shape)
+    padded = np.pad(array, [(0, int(p)) for p in -shape % factor], mode="edge")
+    coarse_shape = np.array(padded.shape) // factor
+    blocks = padded.reshape(coarse_shape[0], factor[0], coarse_shape[1], factor[1], coarse_shape[2], factor[2])
+    coarse = blocks.mean(axis=(1, 3, 5), dtype=np.float32)
+    coarse_sigma = np.sqrt(np.maximum(sigma ** 2 - (factor ** 2 - 1) / 12.0, 0.0)) / factor
+    coarse = ndimage.gaussian_filter(coarse, coarse_sigma, mode="nearest")
+    fine = ndimage.zoom(coarse, factor, order=1, mode="nearest", grid_mode=True)
+    return fine[:shape[0], :shape[1], :shape[2]].astype(np.float32, copy=False)
