@@ -115,9 +115,8 @@ def section_areas(levelset: Volume, points: np.ndarray, radii: np.ndarray, step:
     """Area (mm^2) of the lumen section through each axis point, in the plane normal to the axis.
 
     The plane is sampled on a square grid of ``step`` mm (coarser, 1/40 of the disc radius, for wide vessels)
-    within a disc of ``reach * radius + margin`` around
-    the point, and only the part of the section connected to the point counts (a neighbouring branch cut by
-    the same plane does not).
+    within a disc of ``reach * radius + margin`` around the point, and only the part of the section connected
+    to the point counts (a neighbouring branch cut by the same plane does not).
 
     Parameters
     ----------

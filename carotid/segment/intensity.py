@@ -387,7 +387,7 @@ def wide_gaussian(array: np.ndarray, sigma, voxels_per_step: float = 3.0) -> np.
     ndarray, float32, same shape
     """
     sigma = np.asarray(sigma, float)
-    factor = np.maximum(np.floor(sigma / voxels_per_step), 1).astype(int)
+    factor = np.clip(np.floor(sigma / voxels_per_step), 1, array.shape).astype(int)
     if np.all(factor == 1):
         return ndimage.gaussian_filter(array, sigma, mode="nearest")
     shape = np.array(array.shape)

@@ -297,7 +297,8 @@ def deblur(image: np.ndarray, phi: np.ndarray, spacing_kji, model: IntensityMode
     (``deblur.refine``), with the lumen level followed along the vessel and neighbours and calcium left out."""
     phi = signed_distance(phi, spacing_kji, params.far_mm)  # the evolution's level set is clipped to its band
     depth = max(2.0 * model.blur, float(np.max(spacing_kji)))
-    lumen = local_level(image, phi < -depth, spacing_kji, params.level_mm or 1e3, model.lumen)
+    lumen = (local_level(image, phi < -depth, spacing_kji, params.level_mm, model.lumen) if params.level_mm > 0
+             else model.lumen)
     exclude = stopped
     if dense is not None:
         exclude = dense if exclude is None else exclude | dense
