@@ -40,10 +40,13 @@ from scipy import ndimage
 from skimage.segmentation import watershed
 
 TISSUE, LUMEN, STRUCTURE = 1, 2, 3
+# Tissue level: below the background plus this fraction of the lumen's contrast (lightly smoothed image).
+TISSUE_FRACTION = 0.25
 
 
 def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: float, spacing_kji,
-                    blur_mm: float | None, reach_mm: float = 3.0, sigma_mm: float = 0.5) -> tuple[np.ndarray, np.ndarray, dict]:
+                    blur_mm: float | None, reach_mm: float = 3.0,
+                    sigma_mm: float = 0.5) -> tuple[np.ndarray, np.ndarray, dict]:
     """The image with each hyperdense structure (calcium, bone) and its blur replaced by the background.
 
     Parameters
@@ -88,8 +91,9 @@ def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: flo
                                      spacing_kji, sigma_mm)
     del distance
     extent = regions == STRUCTURE
-    extent[box] = in_the_wall(extent[box], near[box] & (smooth[box] < np.float32(background + 0.25 * (lumen - background))),
-                              spacing_kji, reach_mm)
+    tissue = near[box] & (smooth[box] < np.float32(background + TISSUE_FRACTION * (lumen - background)))
+    extent[box] = in_the_wall(extent[box], tissue, spacing_kji, reach_mm)
+    del tissue
     amplitude_max = 0.0
     if blur_mm and extent.any():
         fraction = np.zeros(image.shape, np.float32)
@@ -101,8 +105,8 @@ def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: flo
         reach = 2 * np.ceil(reach_mm / spacing_kji).astype(int) + 1
         grown = ndimage.maximum_filter(labels, size=reach)
         owner = np.where((regions == TISSUE) & ~extent, grown, 0)
-        blurred, amplitude = structure_blur(image, np.where(fraction > 0, np.where(labels > 0, labels, grown), 0), n, fraction, owner,
-                                            background, spacing_kji, blur_mm)
+        belongs = np.where(fraction > 0, np.where(labels > 0, labels, grown), 0)
+        blurred, amplitude = structure_blur(image, belongs, n, fraction, owner, background, spacing_kji, blur_mm)
         # Within a blur width or two of its edge a structure holds its neighbours' blur too (the lumen's, up
         # to half the contrast at a shared edge): what remains after the subtraction, kept below the half level.
         rim = np.zeros(image.shape, bool)
@@ -159,7 +163,7 @@ def structure_regions(image: np.ndarray, smooth: np.ndarray, hot: np.ndarray, ne
     peaks = np.concatenate([[np.inf], ndimage.maximum(smooth, labels, np.arange(1, n + 1))]).astype(np.float32)
     cores = hot & (smooth > np.float32(0.5) * (peaks[labels] + np.float32(lumen)))
     markers = np.zeros(image.shape, np.int8)
-    markers[near & (smooth < np.float32(background + 0.25 * contrast))] = TISSUE
+    markers[near & (smooth < np.float32(background + TISSUE_FRACTION * contrast))] = TISSUE
     markers[near & clear & (np.abs(smooth - np.float32(lumen)) < np.float32(0.15 * contrast))] = LUMEN
     markers[cores] = STRUCTURE
     gradient = ndimage.gaussian_gradient_magnitude(image, sigma_mm / np.asarray(spacing_kji, float))

@@ -292,8 +292,8 @@ def edge_blur(image: np.ndarray, box, bright: np.ndarray, level: float, spacing_
 
     start = [float(median[-1]), float(median[0] - median[-1]), 0.0, float(spacing.min())]
     try:
-        (_, _, _, sigma), _ = optimize.curve_fit(step, d, median, p0=start,
-                                                 bounds=([-np.inf, 0, -reach_mm, 0.05], [np.inf, np.inf, reach_mm, reach_mm]))
+        bounds = ([-np.inf, 0, -reach_mm, 0.05], [np.inf, np.inf, reach_mm, reach_mm])
+        (_, _, _, sigma), _ = optimize.curve_fit(step, d, median, p0=start, bounds=bounds)
     except (RuntimeError, ValueError):
         return None
     return float(sigma)
