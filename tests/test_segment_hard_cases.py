@@ -1,4 +1,5 @@
-"""Segmentation on the inputs that broke it: a touching vein, MR intensities, a stop point, a fading bolus.
+"""Segmentation on the inputs that broke it: a touching vein, MR intensities, a stop point, a fading bolus,
+a chamber.
 
 Each test also runs the segmentation with its mechanism switched off and checks that the case then fails,
 so that the case really needs the mechanism (a case any method passes would prove nothing).
@@ -8,9 +9,11 @@ import functools
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from carotid.centerline import compute_centerlines
 from carotid.errors import CarotidError
+from carotid.io import Volume
 from carotid.phantom import LABELS, make_phantom
 from carotid.segment import SegmentParameters, calcium, segment
 from carotid.segment.intensity import estimate_from_sample, local_level
@@ -139,3 +142,32 @@ def test_calcified_stenosis_keeps_its_throat(monkeypatch):
     assert errors(SegmentParameters(calcium_edge=False))[1] > 1.0
     monkeypatch.setattr(calcium, "edge_fraction", lambda image, extent, *args: extent.astype(np.float32))
     assert errors()[1] > 0.25
+
+
+def chamber_case():
+    """A 3 mm tube opening without any gap into a 12 mm sphere as bright as it (a heart chamber behind an
+    open valve), 0.6 mm blur, 0.75 mm voxels; returns the image, the tube and the sphere (voxel masks)."""
+    h, shape = 0.75, (100, 40, 40)
+    k, j, i = (axis * h for axis in np.indices(shape, dtype=np.float32))
+    centre = 0.5 * (shape[1] - 1) * h
+    tube = np.where(k <= 60.0, np.hypot(j - centre, i - centre) - 3.0, np.inf)
+    sphere = np.sqrt((k - 60.0) ** 2 + (j - centre) ** 2 + (i - centre) ** 2) - 12.0
+    occupancy = np.clip(0.5 - np.minimum(tube, sphere) / h, 0.0, 1.0)
+    rng = np.random.default_rng(4)
+    image = 40.0 + 360.0 * ndimage.gaussian_filter(occupancy, 0.6 / h) + rng.normal(0.0, 15.0, shape)
+    return Volume(image.astype(np.float32), spacing=(h, h, h)), (tube < -0.5) & (k < 45.0), sphere < -1.5
+
+
+def test_front_stays_out_of_a_chamber():
+    """A front from the tube must not fill the sphere; without the chamber test it does."""
+    volume, tube, sphere = chamber_case()
+    seed = [[14.6, 14.6, 10.0]]  # x, y, z mm: on the tube's axis, 38 mm from the sphere
+    result = segment(volume, seeds_xyz=seed)
+    seg = result.mask.array > 0
+    assert np.count_nonzero(seg & tube) / np.count_nonzero(tube) > 0.95
+    assert np.count_nonzero(seg & sphere) / np.count_nonzero(sphere) < 0.05
+    found = result.report["chambers"]
+    assert len(found) == 1 and found[0]["cores"] == 1
+    assert found[0]["vessel_radius_mm"] == pytest.approx(3.0, abs=0.5)
+    off = segment(volume, seeds_xyz=seed, params=SegmentParameters(chamber_ratio=0)).mask.array > 0
+    assert np.count_nonzero(off & sphere) / np.count_nonzero(sphere) > 0.9

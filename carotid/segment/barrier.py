@@ -11,7 +11,10 @@ the force is set to push the front out, keep it in the lumen:
   brightest value within a lumen radius is not lumen.  The threshold follows
   that local maximum, so a tight stenosis dimmed by the blur keeps its own half
   level, and a fading bolus or an MR bias field does not move it.  It holds a
-  gap that dips below half; it is used while the front captures the vessel.
+  gap that dips below half, in both stages of the evolution: the refining
+  stage's short kernel, blended with the half-maximum force, would otherwise
+  cross a gap one voxel thick, and a tight stenosis's throat would drift out
+  past its own half level.
 * ``under_enhanced`` and ``competing_region``: a wide region (a plateau) that
   stays below 80 % of the brightest lumen nearby is a neighbour with less
   contrast, however thin and blurred the gap to it.  Its core is found by a
@@ -19,6 +22,10 @@ the force is set to push the front out, keep it in the lumen:
   then gives it everything up to the darkest surface between them, the gap.
 * the user's stop points (VMTK's stoppers, 3D Slicer's background seeds) are
   markers of that same watershed, for a neighbour as bright as the lumen.
+* ``chamber_cores``: a cavity as bright as the lumen and joined to it without
+  any gap (a heart chamber behind an open valve) is told by its size: where the
+  captured region is much wider than the vessel at the seeds, its core becomes
+  a marker of that same watershed, which cuts at the darkest surface between.
 
 A gap whose blurred intensity stays above half of its bright neighbours, to a
 neighbour as bright as the lumen, is not seen by any of them: that limit is
@@ -177,6 +184,66 @@ def competing_region(contrast: np.ndarray, lumen: np.ndarray, others: np.ndarray
     markers[lumen] = 1
     mask = (smooth > np.float32(floor)) | (markers > 0)
     return watershed(-smooth, markers, mask=mask) == 2
+
+
+def chamber_cores(region: np.ndarray, seeds_kji: np.ndarray, spacing_kji, ratio: float = 2.0,
+                  reach_mm: float = 20.0) -> tuple[np.ndarray, np.ndarray, float]:
+    """Cores of the chambers a captured region has run into, and markers of the vessel before them.
+
+    A vessel's radius changes slowly along it; a cavity the front reaches through an open valve (a heart
+    chamber) is much wider than the vessel it came from.  The vessel's radius ``R`` is the largest
+    inscribed radius of the region within ``reach_mm`` of the seeds, measured through the region (a
+    geodesic distance, scikit-image's ``MCP_Geometric``).  Where the inscribed radius exceeds
+    ``ratio R``, the region is in a chamber.  The chamber's body is the union of its inscribed balls;
+    the vessel's markers are the voxels of the region nearer the seeds, through the region, than any
+    chamber body by more than ``R``.
+
+    Parameters
+    ----------
+    region : ndarray of bool, shape (nk, nj, ni)
+        The captured lumen.
+    seeds_kji : ndarray, shape (m, 3)
+        Continuous array indices of the seeds.
+    spacing_kji : array_like, shape (3,)
+        Voxel size in mm.
+    ratio : float
+        How many vessel radii a chamber's inscribed radius exceeds.
+    reach_mm : float
+        Geodesic distance (mm) from the seeds over which the vessel's radius is taken.
+
+    Returns
+    -------
+    cores, vessel : ndarray of bool, shape of ``region``
+        The chambers' cores (inscribed radius above ``ratio R``) and the vessel's markers; both empty
+        when there is no chamber.
+    radius : float
+        ``R`` in mm (0 for an empty region).
+    """
+    from skimage.graph import MCP_Geometric
+
+    spacing_kji = np.asarray(spacing_kji, float)
+    cores = np.zeros(region.shape, bool)
+    vessel = np.zeros(region.shape, bool)
+    if not region.any():
+        return cores, vessel, 0.0
+    box = tuple(slice(max(s.start - 1, 0), s.stop + 1) for s in ndimage.find_objects(region.view(np.uint8))[0])
+    sub = ndimage.binary_fill_holes(region[box])  # holes in a cavity (noise, trabeculae) are not its wall
+    depth = ndimage.distance_transform_edt(sub, sampling=spacing_kji)
+    _, nearest = ndimage.distance_transform_edt(~sub, return_indices=True)
+    offset = np.array([s.start for s in box])
+    idx = np.clip(np.round(np.atleast_2d(seeds_kji)).astype(int) - offset, 0, np.asarray(sub.shape) - 1)
+    starts = {tuple(int(nearest[a][tuple(i)]) for a in range(3)) for i in idx}
+    geodesic, _ = MCP_Geometric(np.where(sub, 1.0, np.inf), sampling=tuple(spacing_kji)).find_costs(list(starts))
+    near = geodesic <= reach_mm
+    radius = float(depth[near].max()) if near.any() else 0.0
+    core = (depth > ratio * radius) & np.isfinite(geodesic)
+    if radius == 0.0 or not core.any():
+        return cores, vessel, radius
+    distance, owner = ndimage.distance_transform_edt(~core, sampling=spacing_kji, return_indices=True)
+    body = distance < depth[tuple(owner)]
+    cores[box] = core
+    vessel[box] = np.isfinite(geodesic) & (geodesic < float(geodesic[body].min()) - radius)
+    return cores, vessel, radius
 
 
 def point_mask(points_kji: np.ndarray, shape) -> np.ndarray:

@@ -18,8 +18,8 @@ from scipy import ndimage
 
 from carotid.errors import CarotidError
 from carotid.io import Volume, atomic_dir, write_image, write_json
-from carotid.segment.barrier import (competing_region, half_level_barrier, half_maximum_speed, point_mask,
-                                     under_enhanced)
+from carotid.segment.barrier import (chamber_cores, competing_region, half_level_barrier, half_maximum_speed,
+                                     point_mask, under_enhanced)
 from carotid.segment.calcium import hyperdense_edge
 from carotid.segment.deblur import refine
 from carotid.segment.init import automatic_region, check_points, mask_levelset, seed_levelset, seed_sample
@@ -62,13 +62,20 @@ class SegmentParameters:
     barrier : float
         Half level of the barrier (``barrier.half_level_barrier``): voxels darker than this fraction of the
         brightest lumen-like value within ``barrier_reach_mm`` push the front out (a blurred gap to an enhancing
-        neighbour).  0: off (the paper's GPF alone).
+        neighbour), in the capture and the refining stage.  0: off (the paper's GPF alone).
     barrier_reach_mm : float
         Half-width (mm) of the neighbourhood of that local maximum.
     plateau : float
         Wide regions dimmer than this fraction of the brightest lumen within 10 mm (a vein, a false lumen:
         ``barrier.under_enhanced``) and what the watershed gives them up to the darkest gap
         (``barrier.competing_region``) are kept out of the lumen.  0: off.
+    chamber_ratio : float
+        A region the captured front reaches whose inscribed radius exceeds this many times the vessel's radius
+        near the seeds is a chamber (a heart cavity behind an open valve, an aneurysm): it is kept out of the
+        lumen up to the darkest surface between (``barrier.chamber_cores``) and the capture stage resumes.
+        Only with seeds.  0: off.
+    chamber_reach_mm : float
+        Geodesic distance (mm) from the seeds over which the vessel's radius is taken.
     half_maximum : float
         Weight of the half-maximum force (``barrier.half_maximum_speed``) blended with the potential in the
         refining stage.  The potential's zero lies outside a curved, blurred wall and the half maximum inside
@@ -138,6 +145,8 @@ class SegmentParameters:
     barrier: float = 0.5
     barrier_reach_mm: float = 1.5
     plateau: float = 0.8
+    chamber_ratio: float = 2.0
+    chamber_reach_mm: float = 20.0
     half_maximum: float = 0.5
     deblur: bool = True
     denoise_iterations: int = 0
@@ -189,6 +198,8 @@ class SegmentParameters:
             (self.level_mm >= 0 and self.fold >= 0, "level_mm and fold must not be negative"),
             (0 <= self.barrier < 1 and self.barrier_reach_mm > 0, "barrier must lie in [0, 1), barrier_reach_mm > 0"),
             (0 <= self.half_maximum <= 1, "half_maximum must lie in [0, 1]"),
+            (self.chamber_ratio == 0 or self.chamber_ratio > 1, "chamber_ratio must be 0 (off) or above 1"),
+            (self.chamber_reach_mm > 0, "chamber_reach_mm must be positive"),
             (self.kernel_radius_mm > 0, "kernel_radius_mm must be positive"),
             (self.sigma_mm >= 0, "sigma_mm must not be negative"),
             (self.potential_scale > 0, "potential_scale must be positive"),
@@ -212,6 +223,10 @@ class SegmentParameters:
             if not ok:
                 raise CarotidError(f"bad segmentation parameter: {message}")
         return self
+
+
+# A front kept out of one chamber may reach another (the heart's cavities): as many rounds of the capture stage.
+CHAMBER_ROUNDS = 4
 
 
 @dataclass
@@ -280,12 +295,13 @@ def neighbours(image01: np.ndarray, window, model: IntensityModel, spacing_kji, 
 
 
 def barrier_of(image01: np.ndarray, window, model: IntensityModel, spacing_kji, params: SegmentParameters,
-               excluded: np.ndarray | None = None) -> np.ndarray | None:
+               excluded: np.ndarray | None = None, level=None) -> np.ndarray | None:
     """Where the force pushes the front out whatever the potential: the half-level barrier
-    (``barrier.half_level_barrier``) and ``excluded``; None when there is none."""
+    (``barrier.half_level_barrier``, ``level`` as in ``contrast_units``) and ``excluded``; None when there is
+    none."""
     out = excluded
     if params.barrier > 0:
-        found = half_level_barrier(contrast_units(image01, window, model), spacing_kji, params.barrier,
+        found = half_level_barrier(contrast_units(image01, window, model, level), spacing_kji, params.barrier,
                                    reach_mm=params.barrier_reach_mm)
         out = found if out is None else out | found
     return out
@@ -303,6 +319,22 @@ def deblur(image: np.ndarray, phi: np.ndarray, spacing_kji, model: IntensityMode
     if dense is not None:
         exclude = dense if exclude is None else exclude | dense
     return refine(image, phi, spacing_kji, lumen, model.background, model.blur, exclude)
+
+
+def chambers(phi: np.ndarray, image01: np.ndarray, window, model: IntensityModel, spacing_kji,
+             params: SegmentParameters, seeds_kji: np.ndarray) -> tuple[np.ndarray | None, dict | None]:
+    """The chambers the captured front ``phi`` has run into, up to the darkest surface between them and the
+    vessel (``barrier.chamber_cores``, ``barrier.competing_region``), and their report; (None, None) when
+    there is none."""
+    cores, vessel, radius = chamber_cores(phi < 0, seeds_kji, spacing_kji, params.chamber_ratio,
+                                          params.chamber_reach_mm)
+    if not cores.any():
+        return None, None
+    region = competing_region(contrast_units(image01, window, model), vessel, cores, spacing_kji)
+    labels, n = ndimage.label(cores)
+    centres = np.array(ndimage.center_of_mass(cores, labels, range(1, n + 1)), float)
+    return region, {"vessel_radius_mm": radius, "cores": n, "centres_kji": centres.round(1).tolist(),
+                    "excluded_mm3": float(np.count_nonzero(region) * np.prod(spacing_kji))}
 
 
 def lumen_window(model: IntensityModel, params: SegmentParameters, level=None) -> tuple:
@@ -338,16 +370,18 @@ def lumen_sample(array: np.ndarray, region: np.ndarray) -> np.ndarray:
 
 
 def keep_components(inside: np.ndarray, seeds_kji: np.ndarray | None) -> np.ndarray:
-    """The connected components holding a seed, or the largest one without seeds."""
+    """The connected components holding a seed (or nearest to it, for a seed the front left, such as one
+    placed on a calcification), or the largest one without seeds."""
     labels, n = ndimage.label(inside)
     if n == 0:
         raise CarotidError("segmentation is empty: the front vanished (check the seeds and the HU window)")
     if seeds_kji is not None:
         idx = np.clip(np.round(seeds_kji).astype(int), 0, np.asarray(inside.shape) - 1)
-        keep = np.unique(labels[tuple(idx.T)])
-        keep = keep[keep > 0]
-        if keep.size:
-            return np.isin(labels, keep)
+        keep = labels[tuple(idx.T)]
+        if not keep.all():
+            nearest = ndimage.distance_transform_edt(labels == 0, return_distances=False, return_indices=True)
+            keep = labels[tuple(nearest[(slice(None), *idx.T)])]
+        return np.isin(labels, np.unique(keep))
     sizes = np.bincount(labels.ravel())
     sizes[0] = 0
     return labels == np.argmax(sizes)
@@ -437,7 +471,7 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
 
     t1 = time.perf_counter()
     iterations, converged = [], []
-    level = None
+    level, chamber_report = None, None
     for number, (radius, sigma, alpha) in enumerate(stages):
         if number:
             if params.level_mm > 0 and not params.window:
@@ -450,10 +484,29 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
                 half = half_maximum_speed(contrast_units(image01, window, model, level), spacing)
                 ghat = (1.0 - params.half_maximum) * ghat + params.half_maximum * half
                 del half
+            barrier = barrier_of(image01, window, model, spacing, params, stopped, level)
+            if barrier is not None:
+                ghat[barrier] = 1.0
+            del barrier
         result = evolve(phi, ghat, g, spacing, alpha=alpha, cfl=params.cfl, max_iterations=params.max_iterations,
                         tolerance=params.tolerance, progress=progress)
         phi = result.phi
         iterations.append(result.iterations)
+        for _ in range(CHAMBER_ROUNDS if number == 0 and params.chamber_ratio > 0 and seeds_kji is not None else 0):
+            chamber, found = chambers(phi, image01, window, model, spacing, params, seeds_kji)
+            if chamber is None:
+                break
+            chamber_report = [*(chamber_report or []), found]
+            stopped = chamber if stopped is None else stopped | chamber
+            ghat[chamber] = 1.0
+            # What the front took beyond the chamber is no longer joined to the seeds: it goes too.
+            kept = keep_components((phi < 0) & ~chamber, seeds_kji)
+            phi = signed_distance(np.where(kept, phi, np.maximum(phi, np.float32(spacing.max()))), spacing,
+                                  params.far_mm)
+            result = evolve(phi, ghat, g, spacing, alpha=alpha, cfl=params.cfl, max_iterations=params.max_iterations,
+                            tolerance=params.tolerance, progress=progress)
+            phi = result.phi
+            iterations[-1] += result.iterations
         converged.append(result.converged)
     del ghat, g, image01
     if params.deblur and model.blur:
@@ -498,6 +551,7 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
         "seeds_mm": None if seeds_kji is None else np.asarray(seeds_xyz).tolist(),
         "stops_mm": None if stops is None else np.asarray(stops_xyz).tolist(),
         "excluded_neighbour_mm3": 0.0 if stopped is None else float(np.count_nonzero(stopped) * np.prod(spacing)),
+        "chambers": chamber_report,
         "iterations": iterations,
         "converged": all(converged),
         "seconds": timings,
