@@ -42,6 +42,7 @@ def _segment_parameters(args):
         "alpha": args.alpha, "kernel_radius_mm": args.kernel_radius, "sigma_mm": args.sigma,
         "refine_radius_mm": args.refine_radius, "denoise_iterations": args.denoise,
         "seed_radius_mm": args.seed_radius, "max_iterations": args.max_iterations,
+        "chamber_ratio": args.chamber_ratio,
         "wall_trunk_mm": args.wall_trunk,
     }
     if args.hu_window:
@@ -114,6 +115,11 @@ def cmd_segment(args) -> int:
     wall = "" if rep["wall"] is None else f"whole vessel {rep['wall']['volume_mm3']:.0f} mm^3, "
     print(f"segmentation written to {out}: lumen {rep['lumen_volume_mm3']:.0f} mm^3, {wall}"
           f"{sum(rep['iterations'])} iterations, {state}, {rep['seconds']['total_s']:.1f} s")
+    for found in rep["chambers"] or []:
+        ratio = rep["parameters"]["chamber_ratio"]
+        print(f"kept out of the lumen: {found['cores']} chamber(s) wider than {ratio:g} x the vessel's "
+              f"{found['vessel_radius_mm']:.1f} mm radius, {found['excluded_mm3']:.0f} mm^3 "
+              "(--chamber-ratio 0 keeps them)")
     return 0
 
 
@@ -213,6 +219,9 @@ def _add_segment_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--denoise", type=int, metavar="N",
                    help="curvature anisotropic diffusion iterations before the potential (default 0: off)")
     p.add_argument("--seed-radius", type=float, metavar="MM", help="radius of each seed sphere (default 1.5)")
+    p.add_argument("--chamber-ratio", type=float, metavar="R",
+                   help="a region wider than R times the vessel at the seeds (a heart chamber) is kept out of the "
+                        "lumen; 0 keeps it, e.g. an aneurysm (default 2)")
     p.add_argument("--max-iterations", type=int, metavar="N", help="per stage (default 4000)")
     p.add_argument("--wall", action="store_true",
                    help="also segment the whole vessel (lumen, thrombus, wall): segmentation/wall_mask.nii.gz")

@@ -47,14 +47,28 @@ def test_segment_options_reach_the_parameters(phantom_dir, tmp_path, capsys):
     code, _, _ = run_and_capture(capsys, ["segment", phantom_dir / "image.nii.gz", "-o", case, "--alpha", "0.25",
                                           "--hu-window", "-50", "600", "--refine-radius", "0",
                                           "--wall-morphology", "1", "0.5", "--wall-trunk", "4",
-                                          "--max-iterations", "200"])
+                                          "--max-iterations", "200", "--chamber-ratio", "3"])
     assert code == 0
     params = json.loads((case / "segmentation" / "report.json").read_text())["parameters"]
     assert params["alpha"] == 0.25 and params["window"] == [-50, 600]
     assert params["refine_radius_mm"] == 0 and params["max_iterations"] == 200
     assert params["wall"] and params["wall_close_mm"] == 1 and params["wall_open_mm"] == 0.5
-    assert params["wall_trunk_mm"] == 4
+    assert params["wall_trunk_mm"] == 4 and params["chamber_ratio"] == 3
     assert (case / "segmentation" / "wall_mask.nii.gz").exists()
+
+
+def test_segment_says_what_it_kept_out(tmp_path, capsys):
+    from test_segment_hard_cases import chamber_case
+
+    volume, _, sphere = chamber_case()
+    image = write_image(volume, tmp_path / "chamber.nii.gz")
+    argv = ["segment", image, "-o", tmp_path / "case", "--seed", "14.6", "14.6", "10.0"]
+    code, out, _ = run_and_capture(capsys, argv)
+    assert code == 0 and "kept out of the lumen: 1 chamber(s)" in out and "--chamber-ratio 0" in out
+    code, out, _ = run_and_capture(capsys, [*argv[:3], tmp_path / "kept", *argv[4:], "--chamber-ratio", "0"])
+    assert code == 0 and "chamber" not in out
+    mask = read_image(tmp_path / "kept" / "segmentation" / "mask.nii.gz", dtype=None).array > 0
+    assert np.count_nonzero(mask & sphere) > 0.9 * np.count_nonzero(sphere)
 
 
 def bad_inputs(tmp_path, phantom_dir):
@@ -77,6 +91,7 @@ def bad_inputs(tmp_path, phantom_dir):
         ("NaN voxels", ["segment", with_nan]),
         ("seed outside", ["segment", image, "--seed", "0", "0", "900"]),
         ("bad parameter", ["segment", image, "--alpha", "2"]),
+        ("bad chamber ratio", ["segment", image, "--chamber-ratio", "0.5"]),
     ]
 
 

@@ -14,8 +14,8 @@ from scipy import ndimage
 from carotid.centerline import compute_centerlines
 from carotid.errors import CarotidError
 from carotid.io import Volume
-from carotid.phantom import LABELS, make_phantom
-from carotid.segment import SegmentParameters, calcium, segment
+from carotid.phantom import LABELS, make_phantom, sample_family
+from carotid.segment import SegmentParameters, calcium, segment, segmentation
 from carotid.segment.intensity import estimate_from_sample, local_level
 from carotid.segment.metrics import dice
 
@@ -142,6 +142,26 @@ def test_calcified_stenosis_keeps_its_throat(monkeypatch):
     assert errors(SegmentParameters(calcium_edge=False))[1] > 1.0
     monkeypatch.setattr(calcium, "edge_fraction", lambda image, extent, *args: extent.astype(np.float32))
     assert errors()[1] > 0.25
+
+
+def test_refining_stage_keeps_the_half_level_barrier(monkeypatch):
+    """Family case 10 (area stenosis 68 %, 0.73 mm blur, 39 HU noise, calcium, a vein at 79 % 1.4 mm away):
+    the refining stage's short kernel drifts out of the throat past its half level unless the barrier holds."""
+    p = make_phantom(**sample_family(10))
+    true_nascet, _ = graded(p, p.sdf.array)
+    seeds = [p.info["seeds_mm"][name] for name in ("CCA", "ICA", "ECA")]
+
+    def error():
+        return 100.0 * (graded(p, segment(p.image, seeds_xyz=seeds).levelset.array)[0] - true_nascet)
+
+    assert abs(error()) <= 5.0
+    capture_only = segmentation.barrier_of
+
+    def mutant(*args, level=None):  # the barrier in the capture stage only
+        return args[5] if level is not None else capture_only(*args)
+
+    monkeypatch.setattr(segmentation, "barrier_of", mutant)
+    assert error() < -6.0
 
 
 def chamber_case():

@@ -484,7 +484,7 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
                 half = half_maximum_speed(contrast_units(image01, window, model, level), spacing)
                 ghat = (1.0 - params.half_maximum) * ghat + params.half_maximum * half
                 del half
-            barrier = barrier_of(image01, window, model, spacing, params, stopped, level)
+            barrier = barrier_of(image01, window, model, spacing, params, stopped, level=level)
             if barrier is not None:
                 ghat[barrier] = 1.0
             del barrier
