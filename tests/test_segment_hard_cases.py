@@ -189,5 +189,6 @@ def test_front_stays_out_of_a_chamber():
     found = result.report["chambers"]
     assert len(found) == 1 and found[0]["cores"] == 1
     assert found[0]["vessel_radius_mm"] == pytest.approx(3.0, abs=0.5)
+    assert np.allclose(found[0]["centres_mm"], [[14.6, 14.6, 60.0]], atol=2.0)  # the sphere's centre, x y z
     off = segment(volume, seeds_xyz=seed, params=SegmentParameters(chamber_ratio=0)).mask.array > 0
     assert np.count_nonzero(off & sphere) / np.count_nonzero(sphere) > 0.9

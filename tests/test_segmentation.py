@@ -80,3 +80,21 @@ def test_unusable_images_are_refused():
         segment(p.image.with_array(holes))
     with pytest.raises(CarotidError, match="alpha"):
         segment(p.image, params=SegmentParameters(alpha=1.5))
+
+
+def test_kept_components_follow_the_seeds():
+    """A seed inside a component keeps it; a seed the front left keeps the component within reach of it,
+    and not the largest one; a seed far from everything falls back to the largest."""
+    from carotid.segment.segmentation import keep_components
+
+    inside = np.zeros((20, 20, 60), bool)
+    inside[5:15, 5:15, 2:10] = True  # small, near the seeds
+    inside[5:15, 5:15, 30:58] = True  # large
+    spacing = np.array([0.5, 0.5, 0.5])
+    small = inside.copy()
+    small[..., 20:] = False
+    assert np.array_equal(keep_components(inside, np.array([[10.0, 10.0, 5.0]]), spacing), small)
+    # 4 voxels (2 mm) beyond the small block's face: within 5 mm of it.
+    assert np.array_equal(keep_components(inside, np.array([[10.0, 10.0, 13.0]]), spacing), small)
+    assert np.array_equal(keep_components(inside, np.array([[10.0, 10.0, 20.0]]), spacing, reach_mm=1.0),
+                          inside & ~small)

@@ -324,8 +324,8 @@ def deblur(image: np.ndarray, phi: np.ndarray, spacing_kji, model: IntensityMode
 def chambers(phi: np.ndarray, image01: np.ndarray, window, model: IntensityModel, spacing_kji,
              params: SegmentParameters, seeds_kji: np.ndarray) -> tuple[np.ndarray | None, dict | None]:
     """The chambers the captured front ``phi`` has run into, up to the darkest surface between them and the
-    vessel (``barrier.chamber_cores``, ``barrier.competing_region``), and their report; (None, None) when
-    there is none."""
+    vessel (``barrier.chamber_cores``, ``barrier.competing_region``), and their report (centres as array
+    indices); (None, None) when there is none."""
     cores, vessel, radius = chamber_cores(phi < 0, seeds_kji, spacing_kji, params.chamber_ratio,
                                           params.chamber_reach_mm)
     if not cores.any():
@@ -333,8 +333,46 @@ def chambers(phi: np.ndarray, image01: np.ndarray, window, model: IntensityModel
     region = competing_region(contrast_units(image01, window, model), vessel, cores, spacing_kji)
     labels, n = ndimage.label(cores)
     centres = np.array(ndimage.center_of_mass(cores, labels, range(1, n + 1)), float)
-    return region, {"vessel_radius_mm": radius, "cores": n, "centres_kji": centres.round(1).tolist(),
+    return region, {"vessel_radius_mm": radius, "cores": n, "centres_kji": centres,
                     "excluded_mm3": float(np.count_nonzero(region) * np.prod(spacing_kji))}
+
+
+def capture_without_chambers(volume: Volume, phi: np.ndarray, ghat: np.ndarray, g: np.ndarray, image01: np.ndarray,
+                             window, model: IntensityModel, params: SegmentParameters, seeds_kji: np.ndarray,
+                             stopped: np.ndarray | None, alpha: float, progress=None):
+    """Resume the capture stage without each chamber its converged front ``phi`` ran into (``chambers``) and
+    without what lies beyond it, up to ``CHAMBER_ROUNDS`` times (a front kept out of one heart cavity may
+    reach another).  ``ghat`` is modified in place.
+
+    Returns
+    -------
+    phi : ndarray, float32
+    result : EvolutionResult or None
+        The last evolution (None when there was no chamber).
+    iterations : int
+        Iterations of the resumed evolutions.
+    stopped : ndarray of bool or None
+        ``stopped`` with the chambers.
+    reports : list of dict or None
+        One per round: the vessel's radius, the number of cores, their centres in world mm, the volume kept out.
+    """
+    spacing = volume.spacing_kji
+    result, iterations, reports = None, 0, None
+    for _ in range(CHAMBER_ROUNDS):
+        chamber, found = chambers(phi, image01, window, model, spacing, params, seeds_kji)
+        if chamber is None:
+            break
+        found["centres_mm"] = volume.index_to_world(found.pop("centres_kji")).round(1).tolist()
+        reports = [*(reports or []), found]
+        stopped = chamber if stopped is None else stopped | chamber
+        ghat[chamber] = 1.0
+        kept = keep_components((phi < 0) & ~chamber, seeds_kji, spacing)  # what lay beyond goes too
+        phi = signed_distance(np.where(kept, phi, np.maximum(phi, np.float32(spacing.max()))), spacing,
+                              params.far_mm)
+        result = evolve(phi, ghat, g, spacing, alpha=alpha, cfl=params.cfl, max_iterations=params.max_iterations,
+                        tolerance=params.tolerance, progress=progress)
+        phi, iterations = result.phi, iterations + result.iterations
+    return phi, result, iterations, stopped, reports
 
 
 def lumen_window(model: IntensityModel, params: SegmentParameters, level=None) -> tuple:
@@ -369,19 +407,23 @@ def lumen_sample(array: np.ndarray, region: np.ndarray) -> np.ndarray:
     return region & (array > threshold_otsu(values))
 
 
-def keep_components(inside: np.ndarray, seeds_kji: np.ndarray | None) -> np.ndarray:
-    """The connected components holding a seed (or nearest to it, for a seed the front left, such as one
-    placed on a calcification), or the largest one without seeds."""
+def keep_components(inside: np.ndarray, seeds_kji: np.ndarray | None, spacing_kji,
+                    reach_mm: float = 5.0) -> np.ndarray:
+    """The connected components holding a seed, or within ``reach_mm`` of it for a seed the front left (one
+    placed on a calcification or a flap); the largest one when no seed has any."""
     labels, n = ndimage.label(inside)
     if n == 0:
         raise CarotidError("segmentation is empty: the front vanished (check the seeds and the HU window)")
     if seeds_kji is not None:
-        idx = np.clip(np.round(seeds_kji).astype(int), 0, np.asarray(inside.shape) - 1)
-        keep = labels[tuple(idx.T)]
+        idx = tuple(np.clip(np.round(seeds_kji).astype(int), 0, np.asarray(inside.shape) - 1).T)
+        keep = labels[idx]
         if not keep.all():
-            nearest = ndimage.distance_transform_edt(labels == 0, return_distances=False, return_indices=True)
-            keep = labels[tuple(nearest[(slice(None), *idx.T)])]
-        return np.isin(labels, np.unique(keep))
+            distance, nearest = ndimage.distance_transform_edt(labels == 0, sampling=spacing_kji,
+                                                               return_indices=True)
+            keep = np.where(distance[idx] <= reach_mm, labels[tuple(nearest[(slice(None), *idx)])], 0)
+        keep = np.unique(keep[keep > 0])
+        if keep.size:
+            return np.isin(labels, keep)
     sizes = np.bincount(labels.ravel())
     sizes[0] = 0
     return labels == np.argmax(sizes)
@@ -492,21 +534,11 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
                         tolerance=params.tolerance, progress=progress)
         phi = result.phi
         iterations.append(result.iterations)
-        for _ in range(CHAMBER_ROUNDS if number == 0 and params.chamber_ratio > 0 and seeds_kji is not None else 0):
-            chamber, found = chambers(phi, image01, window, model, spacing, params, seeds_kji)
-            if chamber is None:
-                break
-            chamber_report = [*(chamber_report or []), found]
-            stopped = chamber if stopped is None else stopped | chamber
-            ghat[chamber] = 1.0
-            # What the front took beyond the chamber is no longer joined to the seeds: it goes too.
-            kept = keep_components((phi < 0) & ~chamber, seeds_kji)
-            phi = signed_distance(np.where(kept, phi, np.maximum(phi, np.float32(spacing.max()))), spacing,
-                                  params.far_mm)
-            result = evolve(phi, ghat, g, spacing, alpha=alpha, cfl=params.cfl, max_iterations=params.max_iterations,
-                            tolerance=params.tolerance, progress=progress)
-            phi = result.phi
-            iterations[-1] += result.iterations
+        if number == 0 and params.chamber_ratio > 0 and seeds_kji is not None:
+            phi, resumed, more, stopped, chamber_report = capture_without_chambers(
+                volume, phi, ghat, g, image01, window, model, params, seeds_kji, stopped, alpha, progress)
+            result = resumed or result
+            iterations[-1] += more
         converged.append(result.converged)
     del ghat, g, image01
     if params.deblur and model.blur:
@@ -523,7 +555,7 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
     inside = phi < 0
     if stopped is not None:
         inside &= ~stopped
-    inside = keep_components(inside, seeds_kji)
+    inside = keep_components(inside, seeds_kji, spacing)
     phi = np.where(inside, np.minimum(phi, -1e-3), np.maximum(phi, 0)).astype(np.float32)
     phi = signed_distance(phi, spacing, params.far_mm)
     mask = (phi < 0).astype(np.uint8)
@@ -534,10 +566,10 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
         speeds = partial(speed_fields, spacing_kji=spacing, radius_mm=params.wall_kernel_mm,
                          sigma_mm=params.sigma_mm, params=params)
         region, wall_report = outer_wall(volume, mask > 0, speeds, params, progress)
-        wall = keep_components(region, seeds_kji)
+        wall = keep_components(region, seeds_kji, spacing)
         if params.wall_trunk_mm > 0:
             t3 = time.perf_counter()
-            wall = keep_components(trunk(wall, spacing, params.wall_trunk_mm), seeds_kji)
+            wall = keep_components(trunk(wall, spacing, params.wall_trunk_mm), seeds_kji, spacing)
             wall_report["trunk_seconds"] = time.perf_counter() - t3
         wall = wall.astype(np.uint8)
         wall_report["volume_mm3"] = float(wall.sum() * np.prod(spacing))
