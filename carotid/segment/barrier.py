@@ -229,7 +229,7 @@ def chamber_cores(region: np.ndarray, seeds_kji: np.ndarray, spacing_kji, ratio:
     box = tuple(slice(max(s.start - 1, 0), s.stop + 1) for s in ndimage.find_objects(region.view(np.uint8))[0])
     sub = ndimage.binary_fill_holes(region[box])  # holes in a cavity (noise, trabeculae) are not its wall
     depth = ndimage.distance_transform_edt(sub, sampling=spacing_kji)
-    _, nearest = ndimage.distance_transform_edt(~sub, return_indices=True)
+    nearest = ndimage.distance_transform_edt(~sub, return_distances=False, return_indices=True)
     offset = np.array([s.start for s in box])
     idx = np.clip(np.round(np.atleast_2d(seeds_kji)).astype(int) - offset, 0, np.asarray(sub.shape) - 1)
     starts = {tuple(int(nearest[a][tuple(i)]) for a in range(3)) for i in idx}
