@@ -37,6 +37,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from carotid.segment.intensity import region_box
+
 
 def half_level_barrier(contrast: np.ndarray, spacing_kji, fraction: float = 0.5, sigma_mm: float = 0.3,
                        reach_mm: float = 1.5) -> np.ndarray:
@@ -224,9 +226,9 @@ def chamber_cores(region: np.ndarray, seeds_kji: np.ndarray, spacing_kji, ratio:
     spacing_kji = np.asarray(spacing_kji, float)
     cores = np.zeros(region.shape, bool)
     vessel = np.zeros(region.shape, bool)
-    if not region.any():
+    box = region_box(region, spacing_kji, float(spacing_kji.max()))  # one voxel of background around it
+    if box is None:
         return cores, vessel, 0.0
-    box = tuple(slice(max(s.start - 1, 0), s.stop + 1) for s in ndimage.find_objects(region.view(np.uint8))[0])
     sub = ndimage.binary_fill_holes(region[box])  # holes in a cavity (noise, trabeculae) are not its wall
     depth = ndimage.distance_transform_edt(sub, sampling=spacing_kji)
     nearest = ndimage.distance_transform_edt(~sub, return_distances=False, return_indices=True)

@@ -33,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from carotid.segment.intensity import local_level
+from carotid.segment.intensity import local_level, region_box
 
 # Scale (mm) of the extra smoothing of the wall's speed: the model corrects a position, not the noise.
 SMOOTH_MM = 1.0
@@ -72,7 +72,7 @@ def refine(image: np.ndarray, phi: np.ndarray, spacing_kji, lumen, background: f
     spacing = np.asarray(spacing_kji, float)
     sigma_mm = float(blur_mm)
     band = 2.0 * sigma_mm + float(spacing.max())
-    box = _box(phi < band + 3.0 * sigma_mm, spacing, 3.0 * sigma_mm)
+    box = region_box(phi < band + 3.0 * sigma_mm, spacing, 3.0 * sigma_mm)
     if box is None:
         return phi
     phi0 = np.asarray(phi[box], np.float32)
@@ -115,12 +115,3 @@ def local_background(image: np.ndarray, phi: np.ndarray, spacing, blur_mm: float
     if exclude is not None:
         shell &= ~exclude
     return local_level(image, shell, spacing, scale_mm, default)
-
-
-def _box(region: np.ndarray, spacing, margin_mm: float):
-    """Bounding box of ``region`` grown by ``margin_mm``; None if it is empty."""
-    found = ndimage.find_objects(region.astype(np.uint8))
-    if not found or found[0] is None:
-        return None
-    grow = np.ceil(margin_mm / np.asarray(spacing, float)).astype(int)
-    return tuple(slice(max(s.start - g, 0), min(s.stop + g, n)) for s, g, n in zip(found[0], grow, region.shape))

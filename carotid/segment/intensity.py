@@ -121,6 +121,16 @@ def _box(kji: np.ndarray, shape, margin) -> tuple[slice, ...]:
     return tuple(slice(int(a), int(b)) for a, b in zip(lo, hi))
 
 
+def region_box(region: np.ndarray, spacing_kji, margin_mm: float) -> tuple[slice, ...] | None:
+    """Bounding box (slices) of ``region`` grown by ``margin_mm`` (at least that, per axis) and clipped; None if
+    it is empty."""
+    found = ndimage.find_objects(region.astype(np.uint8))
+    if not found or found[0] is None:
+        return None
+    grow = np.ceil(margin_mm / np.asarray(spacing_kji, float)).astype(int)
+    return tuple(slice(max(s.start - g, 0), min(s.stop + g, n)) for s, g, n in zip(found[0], grow, region.shape))
+
+
 def bright_region(image: np.ndarray, sample: np.ndarray, threshold: float, spacing_kji,
                   reach_mm: float = 30.0) -> tuple[tuple[slice, ...], np.ndarray]:
     """The bright region connected to a lumen sample, within a box around it.
