@@ -39,6 +39,8 @@ import numpy as np
 from scipy import ndimage
 from skimage.segmentation import watershed
 
+from carotid.segment.intensity import region_box
+
 TISSUE, LUMEN, STRUCTURE = 1, 2, 3
 # Tissue level: below the background plus this fraction of the lumen's contrast (lightly smoothed image).
 TISSUE_FRACTION = 0.25
@@ -83,7 +85,7 @@ def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: flo
         return image, hot, {"structures": 0, "volume_mm3": 0.0, "blur_amplitude_max": 0.0}
     distance = ndimage.distance_transform_edt(~hot, sampling=spacing_kji)
     near = distance <= reach_mm
-    box = ndimage.find_objects(near.astype(np.uint8))[0]
+    box = region_box(near, spacing_kji, 0.0)
     # Lumen-level voxels closer than two blur widths may be a structure's own blurred edge: no lumen marker there.
     clear = distance[box] > 2.0 * (blur_mm or sigma_mm)
     regions = np.zeros(image.shape, np.int8)
