@@ -6,8 +6,12 @@ workers.  Bad input (``CarotidError``) fails its case at once with the
 reason and is not retried; any other exception is retried (``retries``)
 as possibly transient, and fails the case if it persists.  One failed case
 never stops the others.  Every stage goes through ``pipeline.run_stage``, so
-finished stages are skipped when a batch is run again.  The outcome is
-``OUT_DIR/cohort.csv``, one row per case.
+finished stages are skipped when a batch is run again.  While it runs, a line
+reports each finished case and, at least every ``PROGRESS_SECONDS``, the cases
+finished, failed, running and waiting with the elapsed time and an ETA.  The
+outcome is ``OUT_DIR/cohort.csv``, one row per case, numbers to
+``SIGNIFICANT_DIGITS`` significant digits, and ``OUT_DIR/cohort.json``
+describing its columns (unit, meaning) and the thresholds of the WSS columns.
 """
 
 from __future__ import annotations
@@ -15,19 +19,46 @@ from __future__ import annotations
 import csv
 import io
 import json
+import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
+from typing import Callable
 
 import numpy as np
 
 from carotid.config import Config
-from carotid.errors import CarotidError
-from carotid.io import atomic_path
-from carotid.pipeline import STAGES, read_case, run_stage
+from carotid.errors import CarotidError, check_ranges
+from carotid.flow.indices import HIGH_OSI, LOW_TAWSS_PA, area_fraction, node_areas
+from carotid.io import atomic_path, write_json
+from carotid.pipeline import PROGRESS_SECONDS, STAGES, format_duration, read_case, run_stage
 
-OSI_THRESHOLD = 0.2  # OSI above which wall is counted as oscillatory (osi_area_fraction)
-COHORT_COLUMNS = ("case_id", "status", "failed_stage", "reason", "image", "lumen_volume_mm3", "nascet", "ecst",
-                  "mesh_tetrahedra", "tawss_mean_pa", "osi_area_fraction", "seconds_total", "seconds_by_stage")
+BATCH_RANGES = {"workers": (1, 256), "retries": (0, 100)}  # LocalCluster processes; retries of a stage
+SIGNIFICANT_DIGITS = 4  # of the real numbers in cohort.csv
+STAGE_NAMES = tuple(stage.name for stage in STAGES if stage.runner)
+
+# Every cohort.csv column: (unit, meaning), written to cohort.json.  Empty cells: not available for that case.
+COHORT_COLUMNS = {
+    "case_id": ("", "case identifier from the manifest"),
+    "status": ("", "ok, or failed"),
+    "failed_stage": ("", "stage that failed (empty for an error outside the stages)"),
+    "reason": ("", "why the case failed"),
+    "image": ("", "input image"),
+    "lumen_volume_mm3": ("mm^3", "lumen volume of the segmentation"),
+    "stenosis_branch": ("", "branch graded in nascet and ecst: the ICA, else the most narrowed branch; empty when "
+                            "no carotid bifurcation was found"),
+    "nascet": ("fraction", "NASCET stenosis degree of stenosis_branch, 1 - d_min / d_distal (diameters)"),
+    "ecst": ("fraction", "ECST stenosis degree of stenosis_branch, 1 - d_min / d_local (diameters)"),
+    "mesh_tetrahedra": ("count", "tetrahedra of the volume mesh"),
+    "tawss_mean_pa": ("Pa", "time-averaged wall shear stress over the last cycle, mean over the wall nodes"),
+    "osi_area_fraction": ("fraction", f"fraction of the wall area where the oscillatory shear index exceeds "
+                                      f"{HIGH_OSI}"),
+    "low_tawss_area_fraction": ("fraction", f"fraction of the wall area where the time-averaged wall shear stress "
+                                            f"is below {LOW_TAWSS_PA} Pa"),
+    **{f"seconds_{name}": ("s", f"time the {name} stage took when it ran") for name in STAGE_NAMES},
+    "seconds_total": ("s", "time of all the stages that ran"),
+}
 
 
 @dataclass(frozen=True)
@@ -42,26 +73,40 @@ class Case:
 def read_manifest(path: str | Path, default_config: str | Path | None = None) -> list[Case]:
     """Read a manifest CSV with columns ``case_id,image[,config]`` (paths relative to the manifest).
 
-    A case's ``config`` (TOML) replaces ``default_config`` for that case.  Duplicate ids, missing
-    columns and unreadable config files are errors; a missing *image* is not (that case fails alone).
+    A case's ``config`` (TOML) replaces ``default_config`` (a path relative to the working directory) for
+    that case.  Duplicate ids, missing columns, empty cells, rows with too many fields and unreadable config
+    files are errors naming the manifest's line; a missing image *file* is not (that case fails alone).
     """
     path = Path(path)
     try:
         text = path.read_text()
     except OSError as exc:
         raise CarotidError(f"{path}: cannot read the manifest ({exc.strerror})") from exc
-    rows = list(csv.DictReader(io.StringIO(text)))
-    if not rows or not {"case_id", "image"} <= set(rows[0]):
+    header = next(csv.reader(io.StringIO(text)), [])
+    if not {"case_id", "image"} <= set(header):
         raise CarotidError(f"{path}: a manifest needs a header with the columns case_id,image[,config] and rows")
+    default = Config.from_toml(default_config).sections if default_config else {}
     cases, seen = [], set()
-    for line, row in enumerate(rows, start=2):
+    reader = csv.DictReader(io.StringIO(text))
+    for row in reader:
+        line = reader.line_num
+        if None in row:
+            raise CarotidError(f"{path}:{line}: more fields than the header's {', '.join(reader.fieldnames)}")
         case_id = (row["case_id"] or "").strip()
         if not case_id or case_id in seen or "/" in case_id:
             raise CarotidError(f"{path}:{line}: case_id {case_id!r} is empty, repeated or contains '/'")
         seen.add(case_id)
-        config = (row.get("config") or "").strip() or default_config
-        overrides = Config.from_toml(path.parent / config).sections if config else {}
-        cases.append(Case(case_id, path.parent / row["image"].strip(), overrides))
+        image = (row["image"] or "").strip()
+        if not image:
+            raise CarotidError(f"{path}:{line}: case {case_id} has no image")
+        config = (row.get("config") or "").strip()
+        try:
+            overrides = Config.from_toml(path.parent / config).sections if config else default
+        except CarotidError as exc:
+            raise CarotidError(f"{path}:{line}: {exc}") from None
+        cases.append(Case(case_id, path.parent / image, overrides))
+    if not cases:
+        raise CarotidError(f"{path}: a manifest needs a header with the columns case_id,image[,config] and rows")
     return cases
 
 
@@ -87,18 +132,17 @@ def _read_json(path: Path) -> dict:
         return {}
 
 
-def _osi_area_fraction(path: Path, threshold: float = OSI_THRESHOLD):
-    """Fraction of the wall area where OSI exceeds ``threshold`` ("" when the flow stage has not run)."""
+def _wall_area_fractions(path: Path) -> tuple:
+    """Fractions of the wall area (``indices.vtp``) with OSI above ``HIGH_OSI`` and with TAWSS below
+    ``LOW_TAWSS_PA``; ``("", "")`` when the flow stage has not run."""
     if not path.exists():
-        return ""
+        return "", ""
     import pyvista as pv
 
-    from carotid.flow.indices import area_fraction
-
     wall = pv.read(path)
-    areas = wall.compute_cell_sizes(length=False, volume=False)["Area"]
-    osi = wall.point_data_to_cell_data()["OSI"] if "OSI" in wall.point_data else wall["OSI"]
-    return float(area_fraction(np.asarray(osi), np.asarray(areas), threshold))
+    areas = node_areas(wall.points, wall.triangulate().faces.reshape(-1, 4)[:, 1:])
+    osi, tawss = np.asarray(wall["OSI"]), np.asarray(wall["TAWSS"])
+    return area_fraction(osi, areas, HIGH_OSI), area_fraction(-tawss, areas, -LOW_TAWSS_PA)  # -TAWSS above
 
 
 def case_summary(case: Case, case_dir: Path, outcome: dict) -> dict:
@@ -106,34 +150,102 @@ def case_summary(case: Case, case_dir: Path, outcome: dict) -> dict:
     record = read_case(case_dir) if (case_dir / "case.json").exists() else {"stages": {}}
     seconds = {name: stage["seconds"] for name, stage in record["stages"].items()}
     segmentation = _read_json(case_dir / "segmentation" / "report.json")
-    stenosis = _read_json(case_dir / "geometry.json").get("stenosis", {})
+    geometry = _read_json(case_dir / "geometry.json")
+    stenosis = (geometry.get("stenosis") or {}) if geometry.get("bifurcation_mm") else {}
     mesh = _read_json(case_dir / "mesh_quality.json")
     flow = _read_json(case_dir / "flow" / "summary.json")
+    osi, low_tawss = _wall_area_fractions(case_dir / "flow" / "indices.vtp")
     return {
         "case_id": case.case_id, "status": outcome["status"], "failed_stage": outcome.get("failed_stage", ""),
         "reason": outcome.get("reason", ""), "image": str(case.image),
         "lumen_volume_mm3": segmentation.get("lumen_volume_mm3", ""),
-        "nascet": stenosis.get("nascet", ""), "ecst": stenosis.get("ecst", ""),
+        "stenosis_branch": stenosis.get("branch", ""), "nascet": stenosis.get("nascet", ""),
+        "ecst": stenosis.get("ecst", ""),
         "mesh_tetrahedra": mesh.get("elements", {}).get("tetrahedra", ""),
         "tawss_mean_pa": flow.get("indices", {}).get("TAWSS", {}).get("mean", ""),
-        "osi_area_fraction": _osi_area_fraction(case_dir / "flow" / "indices.vtp"),
-        "seconds_total": round(sum(seconds.values()), 3), "seconds_by_stage": json.dumps(seconds),
+        "osi_area_fraction": osi, "low_tawss_area_fraction": low_tawss,
+        **{f"seconds_{name}": seconds.get(name, "") for name in STAGE_NAMES},
+        "seconds_total": sum(seconds.values()),
     }
 
 
+def _cell(value) -> str:
+    """A cohort.csv cell: real numbers to ``SIGNIFICANT_DIGITS`` significant digits, integers and text as they are."""
+    if isinstance(value, (float, np.floating)):
+        return f"{value:.{SIGNIFICANT_DIGITS}g}"
+    return str(value)
+
+
 def write_cohort(rows: list[dict], path: Path) -> Path:
-    """Write ``cohort.csv`` atomically."""
+    """Write ``cohort.csv`` and, beside it, ``cohort.json`` (columns with unit and meaning, thresholds), atomically."""
     with atomic_path(path) as tmp:
         with open(tmp, "w", newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=COHORT_COLUMNS)
+            writer = csv.DictWriter(handle, fieldnames=list(COHORT_COLUMNS))
             writer.writeheader()
-            writer.writerows(rows)
+            writer.writerows({k: _cell(v) for k, v in row.items()} for row in rows)
+    write_json({"file": path.name, "significant_digits": SIGNIFICANT_DIGITS,
+                "thresholds": {"osi": HIGH_OSI, "low_tawss_pa": LOW_TAWSS_PA},
+                "columns": {name: {"unit": unit, "description": text}
+                            for name, (unit, text) in COHORT_COLUMNS.items()}},
+               path.with_suffix(".json"))
     return path
 
 
+def _print_err(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
+def _outcome(final) -> dict:
+    """The outcome of a case from the future of its last stage."""
+    try:
+        return final.result()
+    except Exception as exc:  # an unexpected error that persisted through the retries
+        return {"status": "failed", "failed_stage": "", "reason": f"{type(exc).__name__}: {exc}"}
+
+
+def _watch(client, finals: dict, tasks: list, log: Callable[[str], None], every: float) -> dict:
+    """Wait for every case, logging each case that ends and, at least every ``every`` seconds, the cases done,
+    failed, running (a stage of theirs on a worker, executing or queued there) and waiting, the elapsed time and
+    an ETA extrapolated from the fraction of stage tasks finished.
+
+    Returns
+    -------
+    dict
+        Case id -> outcome.
+    """
+    from dask.distributed import wait
+
+    start = last = time.monotonic()
+    outcomes, pending = {}, set(tasks)
+    while len(outcomes) < len(finals):
+        try:
+            wait(list(pending), timeout=every, return_when="FIRST_COMPLETED")
+        except TimeoutError:
+            pass
+        pending = {task for task in pending if task.status == "pending"}
+        ended = [case_id for case_id, final in finals.items() if case_id not in outcomes and final.status != "pending"]
+        for case_id in ended:
+            outcomes[case_id] = outcome = _outcome(finals[case_id])
+            log(f"batch: {case_id} " + ("done" if outcome["status"] == "ok" else
+                                        f"failed at {outcome['failed_stage'] or 'an unexpected error'}: "
+                                        f"{outcome['reason']}"))
+        now = time.monotonic()
+        if ended or now - last >= every:
+            running = {str(key).split("/")[0] for keys in client.processing().values() for key in keys} - set(outcomes)
+            failed = sum(outcome["status"] != "ok" for outcome in outcomes.values())
+            fraction = 1 - len(pending) / len(tasks)
+            eta = format_duration((now - start) * (1 - fraction) / fraction) if fraction > 0 else "unknown"
+            log(f"batch: {len(outcomes) - failed} of {len(finals)} cases done, {failed} failed, {len(running)} "
+                f"running, {len(finals) - len(outcomes) - len(running)} waiting; {format_duration(now - start)} elapsed, "
+                f"ETA {eta}")
+            last = now
+    return outcomes
+
+
 def run_batch(manifest: str | Path, out_dir: str | Path, *, scheduler: str | None = None, workers: int = 2,
-              retries: int = 1, config: str | Path | None = None) -> list[dict]:
-    """Run every case of a manifest on Dask and write ``OUT_DIR/cohort.csv``.
+              retries: int = 1, config: str | Path | None = None,
+              log: Callable[[str], None] = _print_err) -> list[dict]:
+    """Run every case of a manifest on Dask and write ``OUT_DIR/cohort.csv`` and ``cohort.json``.
 
     Parameters
     ----------
@@ -149,6 +261,9 @@ def run_batch(manifest: str | Path, out_dir: str | Path, *, scheduler: str | Non
         Extra attempts of a stage that failed with an unexpected (possibly transient) error.
     config : path, optional
         TOML config for every case without its own.
+    log : callable
+        Receives the progress lines (default: printed on stderr at once): one per case that ends and a
+        summary at least every ``PROGRESS_SECONDS``.
 
     Returns
     -------
@@ -157,27 +272,24 @@ def run_batch(manifest: str | Path, out_dir: str | Path, *, scheduler: str | Non
     """
     from dask.distributed import Client, LocalCluster
 
+    check_ranges("batch", SimpleNamespace(workers=workers, retries=retries), BATCH_RANGES)
     cases = read_manifest(manifest, config)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     cluster = None if scheduler else LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                                   dashboard_address=None)
     with Client(scheduler or cluster) as client:
-        finals = {}
+        finals, tasks = {}, []
         for case in cases:
             previous = None
-            for stage in STAGES:
-                if stage.runner:
-                    previous = client.submit(_stage_task, case, str(out_dir / case.case_id), stage.name, previous,
-                                             key=f"{case.case_id}/{stage.name}", retries=retries, pure=False)
+            for name in STAGE_NAMES:
+                previous = client.submit(_stage_task, case, str(out_dir / case.case_id), name, previous,
+                                         key=f"{case.case_id}/{name}", retries=retries, pure=False)
+                tasks.append(previous)
             finals[case.case_id] = previous
-        rows = []
-        for case in cases:
-            try:
-                outcome = finals[case.case_id].result()
-            except Exception as exc:  # an unexpected error that persisted through the retries
-                outcome = {"status": "failed", "failed_stage": "", "reason": f"{type(exc).__name__}: {exc}"}
-            rows.append(case_summary(case, out_dir / case.case_id, outcome))
+        log(f"batch: {len(cases)} cases, {len(tasks)} stage tasks")
+        outcomes = _watch(client, finals, tasks, log, PROGRESS_SECONDS)
+        rows = [case_summary(case, out_dir / case.case_id, outcomes[case.case_id]) for case in cases]
     if cluster is not None:
         cluster.close()
     write_cohort(rows, out_dir / "cohort.csv")

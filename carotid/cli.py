@@ -10,6 +10,7 @@ import importlib
 import json
 import os
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -97,14 +98,20 @@ def run_segmentation(image_path, case_dir, seeds=None, init_mask_path=None, para
     volume = read_image(image_path)
     init_mask = None
     if init_mask_path is not None:
-        init_mask = read_image(init_mask_path).array > 0
+        mask = read_image(init_mask_path, dtype=None)
+        if not mask.same_grid(volume):
+            raise CarotidError(f"{init_mask_path}: the initial region is not on the image's grid (shape "
+                               f"{mask.array.shape}, origin {np.round(mask.origin, 2).tolist()} mm, spacing "
+                               f"{np.round(mask.spacing, 3).tolist()} mm; the image: {volume.array.shape}, "
+                               f"{np.round(volume.origin, 2).tolist()} mm, {np.round(volume.spacing, 3).tolist()} mm)")
+        init_mask = mask.array > 0
     bar, update = _progress_bar("segment")
     try:
         result = segment(volume, seeds_xyz=seeds, init_mask=init_mask, params=params, progress=update,
                          stops_xyz=stops)
     finally:
         bar.close()
-    return result, write_segmentation(result, case_dir)
+    return result, write_segmentation(result, case_dir, image_path)
 
 
 def cmd_segment(args) -> int:
@@ -185,11 +192,17 @@ def cmd_batch(args) -> int:
     return 0
 
 
+# Any of these makes a folder a case the report can describe.
+REPORTED_OUTPUTS = ("segmentation", "centerlines.vtp", "surface.vtp", "mesh.vtu", "flow/summary.json")
+
+
 def cmd_report(args) -> int:
     from carotid.report import build_report
 
-    if not (Path(args.case_dir) / "segmentation").is_dir():
-        raise CarotidError(f"{args.case_dir}: no segmentation in this case folder (run `carotid segment` first)")
+    case = Path(args.case_dir)
+    if not any((case / name).exists() for name in REPORTED_OUTPUTS):
+        raise CarotidError(f"{case}: no stage output in this folder ({', '.join(REPORTED_OUTPUTS)}): "
+                           "nothing to report")
     print(f"report written to {build_report(args.case_dir)}")
     return 0
 
@@ -314,11 +327,31 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# Arguments that name a folder the command writes into.
+OUTPUT_FOLDERS = ("output", "out_dir", "case_dir")
+
+
+def check_output_folders(args) -> None:
+    """Raise CarotidError when an output folder argument names an existing file."""
+    for name in OUTPUT_FOLDERS:
+        value = getattr(args, name, None)
+        if value is not None and Path(value).exists() and not Path(value).is_dir():
+            raise CarotidError(f"{value}: exists and is a file, not a folder")
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Warnings as one line on stderr, like the errors."""
+    print(f"carotid: warning: {message}", file=sys.stderr)
+
+
 def main(argv=None) -> int:
     """Entry point of the ``carotid`` console script."""
     args = build_parser().parse_args(argv)
     try:
-        return args.func(args)
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning
+            check_output_folders(args)
+            return args.func(args)
     except CarotidError as exc:
         print(f"carotid: error: {exc}", file=sys.stderr)
         return 2

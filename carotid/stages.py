@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from carotid.errors import CarotidError
+from carotid.errors import CarotidError, check_ranges
 
 
 @dataclass
@@ -30,10 +30,11 @@ class CenterlineStageParameters:
     prune: float = 2.0
     smoothing: float = 1.0
 
+    RANGES = {"prune": (0.0, 20.0), "smoothing": (0.0, 20.0)}
+
     def validate(self) -> "CenterlineStageParameters":
         """Raise CarotidError for values outside their range."""
-        if self.prune < 0 or self.smoothing < 0:
-            raise CarotidError("bad centerline parameter: prune and smoothing must not be negative")
+        check_ranges("centerlines", self, self.RANGES)
         return self
 
 
@@ -68,12 +69,15 @@ class SurfaceStageParameters:
     smoothing_iterations: int = 30
     remesh_iterations: int = 8
 
+    RANGES = {"target_edge_mm": (0.02, 5.0), "edge_radius_ratio": (0.0, 2.0), "edge_min_mm": (0.02, 5.0),
+              "edge_max_mm": (0.02, 5.0), "inset_radii": (0.0, 10.0), "flow_extension_radii": (0.0, 50.0),
+              "smoothing_iterations": (0, 1000), "remesh_iterations": (0, 100)}
+
     def validate(self) -> "SurfaceStageParameters":
         """Raise CarotidError for values outside their range."""
-        if self.target_edge_mm <= 0 or self.edge_radius_ratio < 0 or not 0 < self.edge_min_mm <= self.edge_max_mm:
-            raise CarotidError("bad surface parameter: edge sizes must be positive with edge_min_mm <= edge_max_mm")
-        if self.inset_radii < 0 or self.flow_extension_radii < 0:
-            raise CarotidError("bad surface parameter: inset_radii and flow_extension_radii must not be negative")
+        check_ranges("surface", self, self.RANGES)
+        if self.edge_min_mm > self.edge_max_mm:
+            raise CarotidError("bad surface parameter: edge_min_mm must not exceed edge_max_mm")
         return self
 
 
@@ -107,10 +111,14 @@ class MeshStageParameters:
     core: str = "gmsh"
     lloyd_iterations: int = 5
 
+    # A layer thicker than 0.8 of the radius leaves no core; a core element or a layer wider than a few mm is
+    # wider than a neck artery.
+    RANGES = {"layers": (0, 30), "ratio": (1.0, 3.0), "thickness_mm": (0.0, 5.0), "thickness_ratio": (0.01, 0.8),
+              "size_mm": (0.0, 10.0), "lloyd_iterations": (0, 100)}
+
     def validate(self) -> "MeshStageParameters":
         """Raise CarotidError for values outside their range."""
-        if self.layers < 0 or self.ratio <= 0 or self.thickness_mm < 0 or self.size_mm < 0:
-            raise CarotidError("bad mesh parameter: layers, ratio, thickness and size must be positive")
+        check_ranges("mesh", self, self.RANGES)
         if self.core not in ("gmsh", "tetgen"):
             raise CarotidError(f"bad mesh parameter: core must be 'gmsh' or 'tetgen', not {self.core!r}")
         return self
@@ -146,6 +154,8 @@ class FlowStageParameters:
         Blood density, kg/m^3.
     mu : float
         Blood dynamic viscosity, Pa s.
+    force : bool
+        Run even when the estimated step count or output size exceeds the sane bounds.
     """
 
     cycles: float = 3.0
@@ -159,6 +169,11 @@ class FlowStageParameters:
     checkpoint_every: int = 500
     rho: float = 1060.0
     mu: float = 3.5e-3
+    force: bool = False
+
+    # Blood and the analogue fluids of flow phantoms (water to glycerol mixtures).
+    RANGES = {"cycles": (1e-3, 100.0), "dt": (0.0, 0.01), "output_every": (1, 10**7), "checkpoint_every": (1, 10**7),
+              "rho": (500.0, 2000.0), "mu": (1e-4, 0.1)}
 
     def flow_parameters(self):
         """The solver's ``FlowParameters``, validated."""
@@ -174,10 +189,9 @@ class FlowStageParameters:
 
     def validate(self) -> "FlowStageParameters":
         """Raise CarotidError for values outside their range (the solver checks the rest)."""
-        if self.dt < 0 or self.cycles <= 0 or self.rho <= 0 or self.mu <= 0:
-            raise CarotidError("bad simulate parameter: cycles, rho and mu must be positive and dt not negative")
+        check_ranges("simulate", self, self.RANGES)
         if self.split and (any(s <= 0 for s in self.split) or abs(sum(self.split) - 1) > 1e-6):
-            raise CarotidError(f"bad simulate parameter: split {self.split} must be positive and sum to 1")
+            raise CarotidError(f"bad simulate parameter: split ratios {self.split} must be positive and sum to 1")
         return self
 
 
@@ -219,9 +233,30 @@ def run_mesh(case_dir: Path, params: dict, inputs: list[Path]) -> None:
     write_mesh(mesh, case_dir, quality)
 
 
-def run_simulate(case_dir: Path, params: dict, inputs: list[Path]) -> None:
-    """The ``simulate`` stage: ``mesh.vtu`` -> ``flow/``; resumes from the stage's checkpoint when it matches."""
+def run_simulate(case_dir: Path, params: dict, inputs: list[Path], progress=None) -> None:
+    """The ``simulate`` stage: ``mesh.vtu`` -> ``flow/``.
+
+    The run continues from ``flow/checkpoint.npz`` when that was made with the same mesh and solution
+    settings (:meth:`carotid.flow.simulate.FlowParameters.fingerprint`), else it starts at t = 0.
+
+    Parameters
+    ----------
+    case_dir : Path
+    params : dict
+        The ``[simulate]`` section.
+    inputs : list of Path
+        ``mesh.vtu``.
+    progress : carotid.pipeline.StageProgress, optional
+        Receives after every step the simulated time as a fraction of the run's end time, with the cycle,
+        the time (s), the CFL number and the mass imbalance (%), and the solver's estimate of the run as a line.
+    """
     from carotid.flow.simulate import simulate
 
     flow = FlowStageParameters(**params).validate().flow_parameters()
-    simulate(case_dir / "mesh.vtu", case_dir, flow, resume="auto")
+
+    def report(info: dict) -> None:
+        progress(info["time"] / info["end"], 1.0, cycle=f"{info['cycle']:.3f}", t=f"{info['time']:.4f}s",
+                 CFL=f"{info['cfl']:.2f}", imbalance=f"{100 * info['imbalance']:+.3f}%")
+
+    simulate(inputs[0], case_dir, flow, resume="auto", progress=None if progress is None else report,
+             log=None if progress is None else progress.write)

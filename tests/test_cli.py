@@ -6,7 +6,7 @@ import pytest
 import SimpleITK as sitk
 
 from carotid.cli import main
-from carotid.io import read_image, write_image
+from carotid.io import Volume, read_image, write_image
 
 
 @pytest.fixture(scope="module")
@@ -83,6 +83,10 @@ def bad_inputs(tmp_path, phantom_dir):
     nan = vol.array.copy()
     nan[5, 5, 5] = np.nan
     with_nan = write_image(vol.with_array(nan), tmp_path / "nan.nii.gz")
+    cut = tmp_path / "cut.nii.gz"
+    cut.write_bytes(image.read_bytes()[:len(image.read_bytes()) // 2])
+    mask = (vol.array > 200).astype(np.uint8)
+    shifted = write_image(Volume(mask, vol.spacing, np.asarray(vol.origin) + 5.0, vol.direction), tmp_path / "m.nii.gz")
     return [
         ("missing file", ["segment", tmp_path / "nope.nii.gz"]),
         ("2D image", ["segment", flat]),
@@ -92,6 +96,8 @@ def bad_inputs(tmp_path, phantom_dir):
         ("seed outside", ["segment", image, "--seed", "0", "0", "900"]),
         ("bad parameter", ["segment", image, "--alpha", "2"]),
         ("bad chamber ratio", ["segment", image, "--chamber-ratio", "0.5"]),
+        ("truncated file", ["segment", cut]),
+        ("initial region on another grid", ["segment", image, "--init-mask", shifted]),
     ]
 
 
@@ -111,3 +117,50 @@ def test_console_script_runs_the_demo(demo_run):
     assert (out / "case" / "segmentation" / "mask.nii.gz").exists() and (out / "case" / "report.html").exists()
     dice = float(proc.stdout.split("Dice against the truth")[1].split(",")[0])
     assert dice >= 0.95
+
+
+@pytest.mark.parametrize("option, value, field", [("--layers", "-3", "layers"), ("--layers", "1000", "layers"),
+                                                  ("--lloyd", "-5", "lloyd_iterations"),
+                                                  ("--thickness-ratio", "5", "thickness_ratio"),
+                                                  ("--size", "100", "size_mm"), ("--ratio", "0", "ratio")])
+def test_mesh_options_are_range_checked_like_the_config(tmp_path, capsys, option, value, field):
+    from carotid.config import Config
+    from carotid.errors import CarotidError
+
+    code, _, err = run_and_capture(capsys, ["mesh", tmp_path / "case", option, value])
+    assert code == 2 and f"bad mesh parameter: {field} = " in err and len(err.strip().splitlines()) == 1
+    with pytest.raises(CarotidError, match=f"bad mesh parameter: {field} = "):
+        Config({"mesh": {field: float(value) if "." in str(Config().section("mesh")[field]) else int(value)}})
+    assert not (tmp_path / "case").exists()
+
+
+@pytest.mark.parametrize("argv", [["phantom", "{file}"], ["segment", "{image}", "-o", "{file}"],
+                                  ["mesh", "{file}"], ["report", "{file}"], ["batch", "{image}", "-o", "{file}"]])
+def test_an_output_folder_that_is_a_file_is_refused(phantom_dir, tmp_path, capsys, argv):
+    file = tmp_path / "taken.txt"
+    file.write_text("keep me")
+    code, _, err = run_and_capture(capsys, [a.format(file=file, image=phantom_dir / "image.nii.gz") for a in argv])
+    assert code == 2 and err.strip() == f"carotid: error: {file}: exists and is a file, not a folder"
+    assert file.read_text() == "keep me"
+
+
+def test_manifest_rows_are_checked_with_their_line(tmp_path, capsys, monkeypatch):
+    from carotid.batch import read_manifest
+
+    (tmp_path / "cohort").mkdir()
+    manifest = tmp_path / "cohort" / "manifest.csv"
+    manifest.write_text("case_id,image\na,a.nii.gz\nb,\n")
+    code, _, err = run_and_capture(capsys, ["batch", manifest, "-o", tmp_path / "out"])
+    assert code == 2 and err.strip() == f"carotid: error: {manifest}:3: case b has no image"
+    assert not (tmp_path / "out").exists()
+    code, _, err = run_and_capture(capsys, ["batch", manifest, "-o", tmp_path / "out", "--workers", "0"])
+    assert code == 2 and "bad batch parameter: workers = 0" in err and not (tmp_path / "out").exists()
+    manifest.write_text("case_id,image\na,a.nii.gz,extra\n")
+    with pytest.raises(Exception, match="manifest.csv:2: more fields"):
+        read_manifest(manifest)
+    # --config is a path from the working directory, not from the manifest's folder
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "run.toml").write_text("[mesh]\nlayers = 3\n")
+    manifest.write_text("case_id,image\na,a.nii.gz\n")
+    (case,) = read_manifest(manifest, "run.toml")
+    assert case.overrides["mesh"]["layers"] == 3 and case.image == tmp_path / "cohort" / "a.nii.gz"

@@ -257,6 +257,56 @@ def test_bad_inputs(tmp_path):
         args.func(args)
 
 
+@pytest.mark.parametrize("dt", [2e-5, None])
+def test_the_step_estimate_is_exact_for_a_fixed_step_and_a_lower_bound_otherwise(dt):
+    from carotid.flow.simulate import _build, run_estimate
+
+    params = _params(dt=dt, cycles=0.05)
+    waveform, solver, wall = _build(tube_mesh(SMALL), params)
+    estimate = run_estimate(solver, wall, params, params.cycles * waveform.period_s)
+    steps = 0
+    while solver.t < params.cycles * waveform.period_s * (1 - 1e-12):
+        solver.step(max_dt=params.cycles * waveform.period_s - solver.t)
+        steps += 1
+    if dt is None:
+        assert not estimate["exact"] and 0 < estimate["steps"] <= steps
+    else:
+        assert estimate["steps"] == steps and estimate["dt_s"] == dt and estimate["exact"]
+        assert estimate["outputs"] == steps // params.output_every + 1
+
+
+def test_a_run_beyond_the_bounds_is_refused_before_anything_is_written(tmp_path, capsys, monkeypatch):
+    import importlib
+
+    from carotid.flow.command import build_parser
+
+    module = importlib.import_module("carotid.flow.simulate")
+
+    mesh = tube_mesh(SMALL)
+    mesh.to_pyvista().save(tmp_path / "mesh.vtu")
+    args = build_parser().parse_args(["simulate", str(tmp_path), "--dt", "1e-9"])
+    with pytest.raises(CarotidError, match=r"take 2,75\d,\d{3},\d{3} steps of 1e-09 s .*--force"):
+        args.func(args)
+    assert not (tmp_path / "flow").exists()
+    monkeypatch.setattr(module, "MAX_STEPS", 2)
+    with pytest.raises(CarotidError, match="steps"):
+        module.simulate(mesh, tmp_path, _params())
+    assert not (tmp_path / "flow").exists()
+    summary = module.simulate(mesh, tmp_path, _params(force=True))
+    assert summary["steps"] > 2
+
+
+def test_a_waveform_that_flows_out_of_the_inlet_is_refused(tmp_path):
+    from carotid.flow.simulate import simulate
+    from carotid.flow.waveform import carotid_waveform, Waveform
+
+    wave = carotid_waveform()
+    backwards = Waveform(wave.period_s, wave.times_s, -wave.flow_m3s)
+    with pytest.raises(CarotidError, match="mean flow is -.* mL/s"):
+        simulate(tube_mesh(SMALL), tmp_path, _params(waveform=backwards))
+    assert not (tmp_path / "flow").exists()
+
+
 def test_vtu_round_trip(tmp_path):
     mesh = tube_mesh(SMALL, split_outlet=True)
     mesh.to_pyvista().save(tmp_path / "mesh.vtu")

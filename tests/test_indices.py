@@ -146,3 +146,11 @@ def test_area_fraction():
 def test_bad_inputs(times, wss, normals):
     with pytest.raises(CarotidError):
         wall_indices(times, wss, normals)
+
+
+def test_node_areas_share_each_triangle_in_thirds():
+    from carotid.flow.indices import node_areas
+
+    points = np.array([[0.0, 0, 0], [2, 0, 0], [2, 3, 0], [0, 3, 0], [5, 5, 5]])  # the last node is unused
+    areas = node_areas(points, np.array([[0, 1, 2], [0, 2, 3]]))
+    np.testing.assert_allclose(areas, [2.0, 1.0, 2.0, 1.0, 0.0])  # two triangles of 3 mm^2

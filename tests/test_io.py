@@ -44,30 +44,89 @@ def test_world_index_transform_matches_simpleitk(tmp_path):
     assert not vol.contains(np.array([[1e3, 0, 0]])).any()
 
 
-def test_dicom_series_folder(tmp_path):
-    vol = make_volume()
+def write_dicom_series(folder, vol, slices=None):
+    """Write ``vol`` as a DICOM series, one file per slice index in ``slices`` (default: all, in order)."""
     array = np.round(vol.array).astype(np.int16)
     writer = sitk.ImageFileWriter()
     writer.KeepOriginalImageUIDOn()
     series = "1.2.826.0.1.3680043.2.1125.1"
-    for k in range(array.shape[0]):
+    for number, k in enumerate(range(array.shape[0]) if slices is None else slices):
         sl = sitk.GetImageFromArray(array[k:k + 1])
         sl.SetSpacing(vol.spacing)
         origin = vol.index_to_world(np.array([k, 0, 0]))
         sl.SetOrigin(tuple(origin))
         sl.SetDirection(DIRECTION.ravel().tolist())
-        for tag, value in [("0020|000e", series), ("0008|0060", "CT"), ("0020|0013", str(k + 1)),
+        for tag, value in [("0020|000e", series), ("0008|0060", "CT"), ("0020|0013", str(number + 1)),
                            ("0020|0032", "\\".join(f"{c:.4f}" for c in origin)),
                            ("0020|0037", "\\".join(f"{c:.6f}" for c in DIRECTION.T[:2].ravel())),
-                           ("0008|0018", f"{series}.{k + 1}"), ("0028|0030", "0.5\\0.45")]:
+                           ("0008|0018", f"{series}.{number + 1}"), ("0028|0030", "0.5\\0.45")]:
             sl.SetMetaData(tag, value)
-        writer.SetFileName(str(tmp_path / f"slice{k:03d}.dcm"))
+        writer.SetFileName(str(folder / f"slice{number:03d}.dcm"))
         writer.Execute(sl)
+    return array
+
+
+def test_dicom_series_folder(tmp_path):
+    vol = make_volume()
+    array = write_dicom_series(tmp_path, vol)
     back = read_image(tmp_path)
     assert back.array.shape == array.shape
     np.testing.assert_allclose(back.array, array)
     np.testing.assert_allclose(back.spacing, vol.spacing, atol=1e-4)
     np.testing.assert_allclose(back.origin, vol.origin, atol=1e-3)
+
+
+@pytest.mark.parametrize("slices, what", [([0, 1, 2, 4, 5, 6, 7], "1 missing slice"),
+                                          ([0, 1, 2, 3, 4, 6, 7, 9], "2 missing slice"),
+                                          ([0, 1, 2, 2, 3, 4, 5], "uneven slice steps")])
+def test_dicom_series_with_missing_or_repeated_slices_is_refused(tmp_path, slices, what):
+    vol = make_volume()
+    vol = Volume(np.repeat(vol.array[:1], 10, axis=0), vol.spacing, vol.origin, vol.direction)
+    write_dicom_series(tmp_path, vol, slices)
+    with pytest.raises(CarotidError, match=what):
+        read_image(tmp_path)
+
+
+def test_slice_steps_of_an_even_series_pass_and_a_gap_is_located():
+    from carotid.io.image import check_slice_steps
+
+    check_slice_steps(np.arange(20) * 0.625 + 3.0, "even")
+    check_slice_steps(-np.arange(20) * 0.625, "descending")
+    positions = np.delete(np.arange(20) * 0.625, 13)
+    with pytest.raises(CarotidError, match="1.25 mm between slices 12 and 13 where the series steps 0.625 mm"):
+        check_slice_steps(positions, "gap")
+
+
+@pytest.mark.parametrize("suffix", [".nii", ".nii.gz"])
+@pytest.mark.parametrize("kept", [0.5, 0.98])
+def test_truncated_nifti_is_refused(tmp_path, suffix, kept):
+    path = write_image(make_volume(), tmp_path / f"image{suffix}")
+    data = path.read_bytes()
+    cut = tmp_path / f"cut{suffix}"
+    cut.write_bytes(data[:int(len(data) * kept)])
+    with pytest.raises(CarotidError, match="truncated"):
+        read_image(cut)
+    read_image(path)  # the whole file reads
+
+
+def test_itk_messages_go_into_the_error_not_on_stderr(tmp_path, capfd):
+    path = write_image(make_volume(), tmp_path / "image.mha", compress=False)
+    data = path.read_bytes()
+    cut = tmp_path / "cut.mha"
+    cut.write_bytes(data[:len(data) * 2 // 3])
+    with pytest.raises(CarotidError, match="data not read completely") as error:
+        read_image(cut)
+    assert "\n" not in str(error.value) and "line " not in str(error.value)
+    assert capfd.readouterr().err == ""
+
+
+def test_same_grid_compares_every_voxel_centre():
+    vol = make_volume()
+    assert vol.same_grid(vol.with_array(np.zeros_like(vol.array)))
+    shifted = Volume(vol.array, vol.spacing, np.asarray(vol.origin) + [0.0, 0.5, 0.0], vol.direction)
+    finer = Volume(vol.array, np.asarray(vol.spacing) * 1.01, vol.origin, vol.direction)
+    turned = Volume(vol.array, vol.spacing, vol.origin, vol.direction[:, [1, 0, 2]])
+    assert not vol.same_grid(shifted) and not vol.same_grid(finer) and not vol.same_grid(turned)
 
 
 def test_bad_inputs_raise_clear_errors(tmp_path):

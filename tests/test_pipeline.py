@@ -3,6 +3,8 @@
 import csv
 import json
 import os
+import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -183,13 +185,21 @@ def test_batch_isolates_a_corrupt_case(small_image, tmp_path, capsys):
     code = main(["batch", str(manifest), "-o", str(out), "--workers", "2", "--config", str(config)])
     captured = capsys.readouterr()
     assert code == 3 and "1 of 5 cases failed" in captured.err
+    progress = [line for line in captured.err.splitlines() if line.startswith("batch: ")]
+    assert "batch: broken failed at segment: " in captured.err and "batch: phantom0 done" in captured.err
+    counts = [re.fullmatch(r"batch: (\d) of 5 cases done, (\d) failed, (\d) running, (\d) waiting; .* elapsed, "
+                           r"ETA .*", line) for line in progress]
+    counts = [tuple(int(n) for n in match.groups()) for match in counts if match]
+    assert counts and all(sum(c) == 5 for c in counts) and counts[-1] == (4, 1, 0, 0)
     rows = {row["case_id"]: row for row in csv.DictReader(open(out / "cohort.csv"))}
     for name in images:
         row = rows[name]
         assert row["status"] == "ok", row
         assert float(row["lumen_volume_mm3"]) > 0 and int(row["mesh_tetrahedra"]) > 0
         assert float(row["tawss_mean_pa"]) > 0 and 0 <= float(row["osi_area_fraction"]) <= 1
+        assert 0 <= float(row["low_tawss_area_fraction"]) <= 1
         assert 0 <= float(row["nascet"]) < 1  # a fraction, as in geometry.json (phantom0's true NASCET is 5 %)
+        assert row["stenosis_branch"] == "ICA"
     assert rows["broken"]["status"] == "failed" and rows["broken"]["failed_stage"] == "segment"
     assert "cannot be read as an image" in rows["broken"]["reason"]
     assert not (out / "broken").exists()
@@ -200,3 +210,49 @@ def test_bad_manifest_is_one_clear_error(tmp_path, capsys):
     manifest.write_text("id,path\na,b\n")
     assert main(["batch", str(manifest), "-o", str(tmp_path / "out")]) == 2
     assert "case_id,image" in capsys.readouterr().err
+
+
+def _significant_digits(cell: str) -> int:
+    mantissa = cell.lstrip("-").split("e")[0].replace(".", "").lstrip("0")
+    return len(mantissa)
+
+
+def test_cohort_csv_is_tidy_and_described(small_image, tmp_path):
+    """Numbers to 4 significant digits, one column per stage time, no JSON in a cell, NASCET beside its
+    branch and empty without a bifurcation, every column and threshold described in cohort.json."""
+    from carotid.batch import Case, case_summary, write_cohort
+
+    case = tmp_path / "bifurcation"
+    run(small_image, case, Config(TOY), log=lambda line: None)
+    tube = tmp_path / "tube"  # the same case where the centerlines found no bifurcation
+    shutil.copytree(case, tube)
+    geometry = json.loads((tube / "geometry.json").read_text())
+    (tube / "geometry.json").write_text(json.dumps({**geometry, "bifurcation_mm": None}))
+    rows = [case_summary(Case(path.name, small_image, {}), path, {"status": "ok"}) for path in (case, tube)]
+    write_cohort(rows, tmp_path / "cohort.csv")
+    with open(tmp_path / "cohort.csv", newline="") as handle:
+        header = next(csv.reader(handle))
+        handle.seek(0)
+        found, tube_row = csv.DictReader(handle)
+    stages = [name for name in read_case(case)["stages"]]
+    assert [f"seconds_{name}" for name in stages] == [c for c in header if c.startswith("seconds_") and c != "seconds_total"]
+    for name, cell in found.items():
+        assert not cell.startswith(("{", "[")), name
+        try:
+            float(cell)
+        except ValueError:
+            continue
+        if name != "mesh_tetrahedra":  # a count, exact
+            assert _significant_digits(cell) <= 4, (name, cell)
+    assert float(found["seconds_total"]) == pytest.approx(sum(s["seconds"] for s in read_case(case)["stages"].values()),
+                                                          rel=1e-3)
+    assert found["stenosis_branch"] == geometry["stenosis"]["branch"]
+    assert float(found["nascet"]) == pytest.approx(geometry["stenosis"]["nascet"], rel=1e-3)
+    assert tube_row["nascet"] == tube_row["ecst"] == tube_row["stenosis_branch"] == ""
+    sidecar = json.loads((tmp_path / "cohort.json").read_text())
+    assert list(sidecar["columns"]) == header
+    assert all(column["description"] for column in sidecar["columns"].values())
+    assert sidecar["columns"]["tawss_mean_pa"]["unit"] == "Pa" and sidecar["columns"]["seconds_total"]["unit"] == "s"
+    assert set(sidecar["thresholds"]) == {"osi", "low_tawss_pa"}
+    for key, column in (("osi", "osi_area_fraction"), ("low_tawss_pa", "low_tawss_area_fraction")):
+        assert f"{sidecar['thresholds'][key]:g}" in sidecar["columns"][column]["description"]

@@ -1,6 +1,7 @@
 """The HTML report: self-contained, rendered by a real headless browser, every picture non-blank."""
 
 import base64
+import json
 import io
 import re
 import shutil
@@ -37,7 +38,163 @@ def test_report_renders_in_headless_chromium(demo_run, tmp_path):
     assert browser, "headless Chromium is needed (scripts/system-packages.sh installs it)"
     shot = tmp_path / "page.png"
     run = subprocess.run([browser, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
-                          "--window-size=1200,1600", f"--screenshot={shot}", (out / "case" / "report.html").as_uri()],
+                          "--window-size=1400,900", f"--screenshot={shot}", (out / "case" / "report.html").as_uri()],
                          capture_output=True, text=True, timeout=120)
     assert shot.exists(), run.stderr
     assert non_blank(shot.read_bytes())
+    width, height = Image.open(shot).size
+    assert (width, height) == (1400, 900)
+
+
+def _drawn_inside(panel) -> np.ndarray:
+    """Pixels of a slice panel inside its contour as drawn: pixel centres placed where imshow puts them."""
+    from matplotlib.path import Path as MplPath
+
+    picture, image = panel["picture"], panel["axes"].images[0]
+    left, right, bottom, top = image.get_extent()
+    rows, cols = np.indices(picture.shape)
+    x = left + (cols + 0.5) * (right - left) / picture.shape[1]
+    first, last = (top, bottom) if image.origin == "upper" else (bottom, top)
+    y = first + (rows + 0.5) * (last - first) / picture.shape[0]
+    points = np.c_[x.ravel(), y.ravel()]
+    inside = np.zeros(len(points), bool)
+    for path in panel["contour"].get_paths():
+        for polygon in path.to_polygons():
+            inside ^= MplPath(polygon).contains_points(points)
+    return inside.reshape(picture.shape)
+
+
+def test_lumen_contour_is_drawn_over_the_lumen(demo_run):
+    import json
+
+    import matplotlib.pyplot as plt
+
+    from carotid.io import read_image
+    from carotid.report.figures import slice_panels
+
+    proc, out = demo_run
+    assert proc.returncode == 0, proc.stderr
+    intensity = json.loads((out / "case" / "segmentation" / "report.json").read_text())["intensity"]
+    threshold = 0.5 * (intensity["lumen"] + intensity["background"])  # HU halfway from tissue to lumen
+    fig, panels = slice_panels(read_image(out / "phantom" / "image.nii.gz"),
+                               read_image(out / "case" / "segmentation" / "mask.nii.gz"))
+    for panel in panels:
+        inside = _drawn_inside(panel)
+        assert inside.sum() > 20, panel["name"]
+        assert panel["picture"][inside].mean() > threshold, f"{panel['name']}: the contour misses the lumen"
+    plt.close(fig)
+
+
+def _first_page(page: str) -> str:
+    return page[:page.index("<h2>Details")]
+
+
+def test_verdict_states_the_grading_of_geometry_json(demo_run):
+    import json
+
+    proc, out = demo_run
+    assert proc.returncode == 0, proc.stderr
+    grade = json.loads((out / "case" / "geometry.json").read_text())["stenosis"]
+    verdict = re.search(r'<div class="verdict".*?</table>', (out / "case" / "report.html").read_text(), re.S)[0]
+    assert f"NASCET {100 * grade['nascet']:.1f} %" in verdict
+    assert f"{100 * grade['ecst']:.1f} %" in verdict
+    for key in ("min_diameter_mm", "distal_diameter_mm", "local_diameter_mm"):
+        assert f"{grade[key]:.2f} mm" in verdict
+    assert f"{grade['arclength_from_bifurcation_mm']:.1f} mm distal to the bifurcation" in verdict
+    assert grade["branch"] in verdict
+    # NASCET categories: < 50 %, 50-69 %, >= 70 % (the demo's residual lumen is far from a near-occlusion)
+    expected = "<50 %" if grade["nascet"] < 0.5 else "50-69 %" if grade["nascet"] < 0.7 else ">=70 %"
+    assert f">{html_escape(expected)}</span>" in verdict
+
+
+def html_escape(text: str) -> str:
+    import html
+
+    return html.escape(text)
+
+
+def test_first_page_holds_verdict_profile_maps_and_flow(demo_run):
+    proc, out = demo_run
+    assert proc.returncode == 0, proc.stderr
+    first = _first_page((out / "case" / "report.html").read_text())
+    for anchor in ('id="verdict"', 'id="profile"', 'id="wss-maps"', 'id="warnings"'):
+        assert anchor in first
+    maps = re.search(r'id="wss-maps".*?</div>', first, re.S)[0]
+    assert maps.count("<img") == 4 and all(name in maps for name in ("TAWSS (Pa)", "OSI", "RRT (1/Pa)", "ECAP"))
+    assert "Outlet flow split" in first and "Inflow waveform" in first and "cardiac cycle" in first
+    assert "low TAWSS (&lt; 0.4 Pa)" in first or "low TAWSS (< 0.4 Pa)" in first
+
+
+def test_wall_maps_state_their_clipping(demo_run):
+    proc, out = demo_run
+    assert proc.returncode == 0, proc.stderr
+    wall = pv_read(out / "case" / "flow" / "indices.vtp")
+    first = _first_page((out / "case" / "report.html").read_text())
+    for name in ("TAWSS", "RRT", "ECAP"):
+        top = np.percentile(np.asarray(wall[name]), 98)
+        assert f"clipped at the 98th percentile, {top:.3g}" in first, name
+
+
+def pv_read(path):
+    import pyvista as pv
+
+    return pv.read(path)
+
+
+def test_surface_regions_are_named_after_the_branches(demo_run):
+    """Each outlet cap lies at the end of the branch geometry.json names it after."""
+    import json
+
+    from carotid.centerline import read_centerlines
+    from carotid.report.html import branch_regions
+
+    proc, out = demo_run
+    assert proc.returncode == 0, proc.stderr
+    caps = json.loads((out / "case" / "geometry.json").read_text())["caps"]
+    branches = read_centerlines(out / "case" / "centerlines.vtp").branches
+    found = branch_regions(np.array([cap["centre"] for cap in caps]), branches)
+    assert [branches[k].name for k in found] == [cap["name"] for cap in caps]
+
+
+def test_detail_tables_are_readable(demo_run):
+    import json
+
+    proc, out = demo_run
+    assert proc.returncode == 0, proc.stderr
+    page = (out / "case" / "report.html").read_text()
+    assert "values]" not in page
+    segmentation = json.loads((out / "case" / "segmentation" / "report.json").read_text())
+    assert segmentation["wall"] is None  # the wall stage is off in the demo: none of its parameters show
+    assert not re.search(r"<th>wall[ _]", page)
+    captions = re.findall(r"<caption>(.*?)</caption>", page)
+    assert len(captions) == len(set(captions)), "a table is printed twice"
+    assert page.count("equivalent radius (mm)") == 1, "the caps are tabled once"
+    assert "<th>stenosis.nascet" not in page and "quality checks" in page.lower()
+    assert 'class="fail">FAIL' in page or 'class="pass">pass' in page
+
+
+def test_report_of_a_case_without_case_json(demo_run, tmp_path):
+    """A case built by the per-stage commands has no case.json: the report skips the CT slices and says so."""
+    import os
+    import shutil
+
+    from carotid.report import build_report
+
+    proc, out = demo_run
+    assert proc.returncode == 0, proc.stderr
+    case = tmp_path / "case"
+    case.mkdir()
+    for item in (out / "case").iterdir():
+        if item.name not in ("case.json", "report.html"):
+            (shutil.copytree if item.name == "segmentation" else os.symlink)(item, case / item.name)
+    page = build_report(case).read_text()
+    assert "CT slices omitted" not in page  # the segmentation records its image
+    assert "could not be built" not in page
+    assert 'id="verdict"' in page and 'id="wss-maps"' in page
+    assert "No case.json" in page
+    record = case / "segmentation" / "report.json"
+    report = json.loads(record.read_text())
+    del report["image"]["path"]
+    record.write_text(json.dumps(report))
+    page = build_report(case).read_text()
+    assert "CT slices omitted: the input CT image is not recorded" in page

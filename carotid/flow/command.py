@@ -23,18 +23,16 @@ def cmd_simulate(args) -> int:
     from tqdm import tqdm
 
     from carotid.flow.mesh import FlowMesh
-    from carotid.flow.simulate import FlowParameters, simulate
+    from carotid.flow.simulate import simulate
+    from carotid.stages import FlowStageParameters
 
     case = Path(args.case_dir)
+    stage = FlowStageParameters(cycles=args.cycles, dt=args.dt or 0.0, waveform=str(args.waveform or ""),
+                                split=list(_split(args.split) or []), turbulence=args.turbulence,
+                                viscous=args.viscous, pressure=args.pressure, output_every=args.output_every,
+                                checkpoint_every=args.checkpoint_every, force=args.force)
+    params = stage.validate().flow_parameters()
     mesh = FlowMesh.from_vtu(case / "mesh.vtu")
-    waveform = None
-    if args.waveform is not None:
-        from carotid.flow.waveform import read_waveform_csv
-
-        waveform = read_waveform_csv(args.waveform)
-    params = FlowParameters(cycles=args.cycles, dt=args.dt, waveform=waveform, split=_split(args.split),
-                            turbulence=args.turbulence, viscous=args.viscous, pressure=args.pressure,
-                            output_every=args.output_every, checkpoint_every=args.checkpoint_every)
     bar = tqdm(total=1.0, unit="cycle", file=sys.stderr, disable=None, dynamic_ncols=True,
                bar_format="{l_bar}{bar}| {postfix}")
 
@@ -46,7 +44,8 @@ def cmd_simulate(args) -> int:
             bar.refresh()
 
     try:
-        summary = simulate(mesh, case, params, resume=args.resume, progress=progress)
+        summary = simulate(mesh, case, params, resume=args.resume, progress=progress,
+                           log=lambda line: bar.write(f"simulate: {line}", file=sys.stderr))
     finally:
         bar.close()
     mb = summary["mass_balance"]
@@ -81,6 +80,8 @@ def register(subparsers) -> None:
     p.add_argument("--output-every", type=int, default=50, metavar="K", help="steps between outputs (50)")
     p.add_argument("--checkpoint-every", type=int, default=500, metavar="M", help="steps between checkpoints")
     p.add_argument("--resume", action="store_true", help="continue from CASE_DIR/flow/checkpoint.npz")
+    p.add_argument("--force", action="store_true",
+                   help="run even when the estimated steps (over 5 million) or output exceed the sane bounds")
     p.set_defaults(func=cmd_simulate)
 
     p = subparsers.add_parser("verify", help="run the analytic flow verification cases (Poiseuille, Womersley, "

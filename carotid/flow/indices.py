@@ -25,6 +25,12 @@ from carotid.errors import CarotidError
 UNDEFINED_DIRECTION = 1e-12
 """|mean tau| at or below this fraction of TAWSS counts as no mean direction (pure reversal)."""
 
+LOW_TAWSS_PA = 0.4
+"""TAWSS below which the wall counts as exposed to low shear, Pa (the report and cohort.csv)."""
+
+HIGH_OSI = 0.2
+"""OSI above which the wall counts as exposed to oscillating shear (the report and cohort.csv)."""
+
 
 def trapezoid_weights(times: np.ndarray) -> np.ndarray:
     """Weights w (k,) such that ``w @ f`` is the trapezoidal integral of samples f over ``times``, s."""
@@ -147,3 +153,23 @@ def area_fraction(values, areas, threshold: float) -> float:
     if not np.all(np.isfinite(areas)) or np.any(areas < 0) or areas.sum() <= 0:
         raise CarotidError("areas must be finite, non-negative and not all zero")
     return float(areas[values > threshold].sum() / areas.sum())
+
+
+def node_areas(points, triangles) -> np.ndarray:
+    """Wall area attached to each node of a triangle surface: a third of each adjacent triangle.
+
+    Parameters
+    ----------
+    points : array_like, shape (n, 3)
+        Node coordinates (mm, or any length unit).
+    triangles : array_like of int, shape (f, 3)
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        Areas in the square of the points' unit.
+    """
+    points, triangles = np.asarray(points, dtype=float), np.asarray(triangles)
+    p = points[triangles]
+    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    return np.bincount(triangles.ravel(), np.repeat(area / 3.0, 3), minlength=len(points))

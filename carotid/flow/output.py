@@ -4,11 +4,15 @@ Layout of ``CASE_DIR/flow``::
 
     fields.xdmf          temporal collection over the volume mesh: velocity (m/s), pressure (Pa), nu_t (m^2/s)
     wall.xdmf            temporal collection over the wall triangles: WSS (Pa) at the nodes and on the faces
-    mesh.h5, wall.h5     geometry (mm, like every mesh of the project) and connectivity, written once
+    mesh.h5, wall.h5     geometry (m) and connectivity, written once
     steps/step_<n>.h5    the fields of one output step (volume and wall)
-    indices.vtp          TAWSS, OSI, RRT, ECAP, transWSS, TWSSG on the wall (carotid.flow.indices)
+    indices.vtp          TAWSS, OSI, RRT, ECAP, transWSS, TWSSG on the wall (carotid.flow.indices), mm
     checkpoint.npz       solver state to resume from
     summary.json
+
+The series are in SI units throughout, coordinates included (metres, unlike the mesh files of ``CASE_DIR``
+which are in mm like every geometry of the project), so that gradients taken on them (ParaView, FEniCS,
+meshio + numpy) come out in SI: a velocity gradient in 1/s, ``mu`` times it in Pa.
 
 Every file is written atomically (a temporary name, then a rename: carotid.io.atomic), and the XDMF
 indexes are rewritten after each output step, so a run killed at any moment leaves readable series up to
@@ -27,7 +31,7 @@ import h5py
 import numpy as np
 
 from carotid.io import atomic_path
-from carotid.flow.mesh import MM, FlowMesh
+from carotid.flow.mesh import FlowMesh
 
 _TYPES = {np.dtype(np.float64): ("Float", 8), np.dtype(np.float32): ("Float", 4), np.dtype(np.int64): ("Int", 8),
           np.dtype(np.int32): ("Int", 4)}
@@ -78,7 +82,7 @@ def xdmf_document(topology: tuple, geometry: tuple, steps: list[tuple[float, lis
 
 
 class FlowWriter:
-    """Writes the volume and wall time series of one run into ``flow_dir``.
+    """Writes the volume and wall time series of one run into ``flow_dir``, coordinates in metres.
 
     Parameters
     ----------
@@ -95,8 +99,8 @@ class FlowWriter:
         (self.dir / "steps").mkdir(parents=True, exist_ok=True)
         self.n, self.m = mesh.n_points, len(mesh.tets)
         self.n_wall, self.f_wall = len(wall_nodes), len(wall_triangles)
-        write_h5(self.dir / "mesh.h5", {"points": mesh.points / MM, "tets": mesh.tets})
-        write_h5(self.dir / "wall.h5", {"points": mesh.points[wall_nodes] / MM, "triangles":
+        write_h5(self.dir / "mesh.h5", {"points": mesh.points, "tets": mesh.tets})
+        write_h5(self.dir / "wall.h5", {"points": mesh.points[wall_nodes], "triangles":
                                         np.asarray(wall_triangles, np.int64), "nodes": wall_nodes})
         self.records: list[dict] = []
 

@@ -4,15 +4,17 @@ Blood is Newtonian (rho 1060 kg/m^3, mu 3.5e-3 Pa s; validation.md).  The inlet 
 Womersley profile of the waveform (:func:`carotid.flow.womersley.inlet_profile`, solved on the actual inlet
 face); the outlets share the inflow by Murray's law or user ratios, imposed every step (see
 :mod:`carotid.flow.cbs`).  Outputs are written every ``output_every`` steps and checkpoints every
-``checkpoint_every`` steps; ``resume=True`` continues from the last checkpoint and, the run being
-deterministic (the time-step sequence follows from the stored state, the pressure warm start is stored),
-ends with the same fields as an uninterrupted run.
+``checkpoint_every`` steps, and at the step a Ctrl-C (SIGINT) interrupts; ``resume=True`` continues from the
+last checkpoint and, the run being deterministic (the time-step sequence follows from the stored state, the
+pressure warm start is stored), ends with the same fields as an uninterrupted run.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import signal
+import threading
 import time as _time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -59,6 +61,8 @@ class FlowParameters:
         |u| above which the run is declared blown up, m/s.
     pressure : str
         Pressure solver, see :class:`carotid.flow.cbs.PressureSolver`.
+    force : bool
+        Run even when :func:`run_estimate` exceeds ``MAX_STEPS`` or the free disk space.
     """
 
     cycles: float = 3.0
@@ -75,6 +79,7 @@ class FlowParameters:
     mu: float = 3.5e-3
     max_speed: float = 20.0
     pressure: str = "auto"
+    force: bool = False
     extra: dict = field(default_factory=dict)
 
     def validate(self) -> FlowParameters:
@@ -98,7 +103,7 @@ class FlowParameters:
         """Hash of everything that changes the solution: these settings (not ``cycles`` nor output settings),
         the waveform and the mesh."""
         keys = {k: v for k, v in asdict(self).items()
-                if k not in ("cycles", "output_every", "checkpoint_every", "waveform", "extra")}
+                if k not in ("cycles", "output_every", "checkpoint_every", "waveform", "extra", "force")}
         keys["waveform"] = np.round(np.r_[waveform.period_s, waveform.times_s, waveform.flow_m3s], 15).tolist()
         digest = hashlib.sha256(json.dumps(keys, sort_keys=True, default=str).encode())
         for array in (mesh.points, mesh.tets, mesh.faces, mesh.labels):
@@ -123,6 +128,9 @@ def _build(mesh: FlowMesh, params: FlowParameters):
     from carotid.flow.womersley import inlet_profile
 
     waveform = params.waveform if params.waveform is not None else carotid_waveform()
+    if not waveform.mean_m3s > 0:
+        raise CarotidError(f"the inlet waveform's mean flow is {waveform.mean_m3s * 1e6:.3g} mL/s: blood must enter "
+                           "through the CCA inlet on average (check the sign of the flow column)")
     nu = params.mu / params.rho
     nodes, pts, tris = mesh.face_patch(INLET)
     profile = inlet_profile(pts, tris, mesh.face_normal(INLET), waveform, nu, params.n_harmonics)
@@ -132,6 +140,49 @@ def _build(mesh: FlowMesh, params: FlowParameters):
                        turbulence=turbulence, pressure=params.pressure, viscous=params.viscous)
     wall = WallShear(mesh, solver.volumes, distance=None if turbulence is None else turbulence.d)
     return waveform, solver, wall
+
+
+# Steps beyond which a run must be confirmed (``force``): the default implicit viscosity needs thousands of steps
+# per cycle on a patient mesh, the paper's explicit scheme up to a few million for three cycles.
+MAX_STEPS = 5_000_000
+
+
+def run_estimate(solver: CBSSolver, wall: WallShear, params: FlowParameters, t_end: float) -> dict:
+    """Steps and output size of a run from the solver's current state to ``t_end`` (s).
+
+    The step is the solver's next one: with a fixed step the count is exact.  The adaptive step of the
+    current velocity (at rest: with implicit viscosity the one of twice the cycle-mean inlet speed, with
+    explicit viscosity the diffusive bound of the thinnest element) only gives a lower bound, since the
+    step shrinks where systole and a stenotic jet speed the flow up (on the demo case 995 estimated, 4644
+    taken).  Each output writes velocity and pressure (and ``nu_t``) on every node and the wall shear
+    stress on the wall nodes and faces, in float64.
+
+    Returns
+    -------
+    dict
+        ``steps``, ``dt_s`` (s), ``outputs``, ``bytes`` and ``exact`` (False: lower bounds).
+    """
+    dt, _ = solver.time_step(solver.element_viscosity())
+    steps = int(np.ceil(max(t_end - solver.t, 0.0) / dt))
+    outputs = steps // params.output_every + 1
+    per_node = 4 + (solver.turbulence is not None)
+    size = 8 * (solver.mesh.n_points * per_node + 3 * len(wall.nodes) + 3 * len(wall.faces))
+    return {"steps": steps, "dt_s": dt, "outputs": outputs, "bytes": outputs * size,
+            "exact": solver.fixed_dt is not None}
+
+
+def check_estimate(estimate: dict, params: FlowParameters, flow_dir: Path) -> None:
+    """Raise CarotidError, unless ``params.force``, for a run beyond ``MAX_STEPS`` or the free disk space."""
+    import shutil
+
+    folder = next(p for p in (flow_dir, *flow_dir.parents) if p.exists())
+    free = shutil.disk_usage(folder).free
+    if params.force or (estimate["steps"] <= MAX_STEPS and estimate["bytes"] < free):
+        return
+    raise CarotidError(f"the run would take {'' if estimate['exact'] else 'at least '}{estimate['steps']:,} steps of {estimate['dt_s']:.2g} s and write "
+                       f"{estimate['bytes'] / 1e9:.3g} GB ({free / 1e9:.3g} GB free, at most {MAX_STEPS:,} steps "
+                       "without --force): use a larger --dt, fewer --cycles or a larger --output-every, "
+                       "or --force")
 
 
 def _diagnostics(solver: CBSSolver, info, rho: float) -> dict:
@@ -152,7 +203,7 @@ def _diagnostics(solver: CBSSolver, info, rho: float) -> dict:
 # 0.096 s per step on a 164k-tetrahedron tube; 0.049 s with one thread).
 @threadpool_limits.wrap(limits=1, user_api="blas")
 def simulate(mesh, case_dir, params: FlowParameters | None = None, resume: bool | str = False,
-             progress: Callable[[dict], None] | None = None) -> dict:
+             progress: Callable[[dict], None] | None = None, log: Callable[[str], None] | None = None) -> dict:
     """Run the flow stage and write ``CASE_DIR/flow``.
 
     Parameters
@@ -167,6 +218,8 @@ def simulate(mesh, case_dir, params: FlowParameters | None = None, resume: bool 
         or another mesh); ``"auto"``: continue when a matching checkpoint exists, else start afresh.
     progress : callable, optional
         Called after every step with ``{"step", "time", "cycle", "cfl", "imbalance", "end"}``.
+    log : callable, optional
+        Receives one line before the run: its estimated steps and output size (:func:`run_estimate`).
 
     Returns
     -------
@@ -192,18 +245,65 @@ def simulate(mesh, case_dir, params: FlowParameters | None = None, resume: bool 
             raise CarotidError("the checkpoint was made with other settings (dt, split, waveform, turbulence...) "
                                "or another mesh: use the same options or run without --resume")
         solver.load_state(state)
-        writer = FlowWriter(flow_dir, mesh, wall.nodes, wall.local_faces)
-        writer.truncate(meta["records"])
         seconds = meta["seconds"]
     else:
         solver.reset()
-        writer = FlowWriter(flow_dir, mesh, wall.nodes, wall.local_faces)
+    estimate = run_estimate(solver, wall, params, t_end)
+    check_estimate(estimate, params, flow_dir)
+    if log is not None:
+        bound = "" if estimate["exact"] else " or more (the adaptive step shrinks as the flow speeds up)"
+        log(f"from t = {solver.t:.4f} s to {t_end:.4f} s: {estimate['steps']:,} steps of {estimate['dt_s']:.2g} s, "
+            f"{estimate['outputs']:,} outputs, {estimate['bytes'] / 1e6:,.0f} MB{bound}")
+    writer = FlowWriter(flow_dir, mesh, wall.nodes, wall.local_faces)
+    if resume:
+        writer.truncate(meta["records"])
+    else:
         _output(writer, solver, wall, params, {"dt": 0.0, "cfl": 0.0, "inflow": solver.inflow(solver.u),
                                                "outflow": solver.outflows(solver.u).tolist(), "imbalance": 0.0,
                                                "imbalance_p1": 0.0,
                                                "dp": 0.0})
         _checkpoint(ckpt, solver, writer, fp, seconds)
     start = _time.perf_counter() - seconds
+    with _DeferredInterrupt() as interrupt:
+        _run_steps(solver, writer, wall, params, ckpt, fp, start, t_end, period, interrupt, progress)
+    seconds = _time.perf_counter() - start
+    summary = _finish(flow_dir, mesh, solver, wall, writer, params, waveform, seconds)
+    write_json(summary, flow_dir / "summary.json")
+    return summary
+
+
+class _DeferredInterrupt:
+    """Ctrl-C (SIGINT) during the time loop sets ``requested`` instead of raising mid-step; the loop then writes
+    a checkpoint and raises KeyboardInterrupt, so a rerun resumes at that step.  A second Ctrl-C raises at once.
+    Signal handlers belong to the main thread: elsewhere (a Dask worker) SIGINT is left alone."""
+
+    def __init__(self):
+        self.requested = False
+        self._installed = False
+        self._previous = None
+
+    def _handle(self, signum, frame) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+
+    def __enter__(self) -> _DeferredInterrupt:
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGINT, self._handle)
+            self._installed = True
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._installed:  # None: a handler not set from Python, for which Python's own stands in
+            signal.signal(signal.SIGINT, signal.default_int_handler if self._previous is None else self._previous)
+
+
+def _run_steps(solver: CBSSolver, writer: FlowWriter, wall: WallShear, params: FlowParameters, ckpt: Path, fp: str,
+               start: float, t_end: float, period: float, interrupt: _DeferredInterrupt,
+               progress: Callable[[dict], None] | None) -> None:
+    """Step to ``t_end`` (s), writing outputs and checkpoints; KeyboardInterrupt after the checkpoint of an
+    interrupted step."""
+    mesh = solver.mesh
     while solver.t < t_end * (1 - 1e-12):
         info = solver.step(max_dt=t_end - solver.t)
         ok, node = solver.check_finite(params.max_speed)
@@ -223,10 +323,9 @@ def simulate(mesh, case_dir, params: FlowParameters | None = None, resume: bool 
         if progress is not None:
             progress({"step": solver.step_count, "time": solver.t, "cycle": solver.t / period, "cfl": info.cfl,
                       "imbalance": info.imbalance, "end": t_end})
-    seconds = _time.perf_counter() - start
-    summary = _finish(flow_dir, mesh, solver, wall, writer, params, waveform, seconds)
-    write_json(summary, flow_dir / "summary.json")
-    return summary
+        if interrupt.requested:
+            _checkpoint(ckpt, solver, writer, fp, _time.perf_counter() - start)
+            raise KeyboardInterrupt
 
 
 def _checkpoint_fingerprint(path: Path) -> str | None:

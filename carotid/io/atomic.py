@@ -18,7 +18,7 @@ import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 
-_RANDOM = "[a-z0-9_]{8}"  # the part of a temporary's name that tempfile draws
+RANDOM_PART = "[a-z0-9_]{8}"  # the part of a temporary's name that tempfile draws
 
 
 def _umask() -> int:
@@ -31,7 +31,7 @@ def _suffixes(path: Path) -> str:
     return "".join(path.suffixes[-2:]) if path.name.endswith(".gz") else path.suffix
 
 
-def _remove_leftovers(folder: Path, pattern: str) -> None:
+def remove_leftovers(folder: Path, pattern: str) -> None:
     """Delete the files and folders in ``folder`` whose names match the regular expression ``pattern``
     (the temporaries of a write to the same path that was killed)."""
     for entry in folder.iterdir():
@@ -51,7 +51,7 @@ def atomic_path(path: str | os.PathLike):
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     prefix, suffix = f".{path.name.split('.')[0]}.", _suffixes(path)
-    _remove_leftovers(path.parent, re.escape(prefix) + _RANDOM + re.escape(suffix))
+    remove_leftovers(path.parent, re.escape(prefix) + RANDOM_PART + re.escape(suffix))
     fd, tmp = tempfile.mkstemp(prefix=prefix, suffix=suffix, dir=path.parent)
     os.close(fd)
     tmp = Path(tmp)
@@ -83,7 +83,7 @@ def atomic_dir(path: str | os.PathLike):
     created = [p for p in (parent, *parent.parents) if not p.exists()]
     parent.mkdir(parents=True, exist_ok=True)
     prefix = f".{path.name}."
-    _remove_leftovers(parent, re.escape(prefix) + r"(old\.)?" + _RANDOM)  # a killed write's folders
+    remove_leftovers(parent, re.escape(prefix) + r"(old\.)?" + RANDOM_PART)  # a killed write's folders
     tmp = Path(tempfile.mkdtemp(prefix=prefix, dir=parent))
     tmp.chmod(0o777 & ~_umask())
     try:

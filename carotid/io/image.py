@@ -9,15 +9,20 @@ is ``origin + direction @ (spacing * (i, j, k))``.
 
 from __future__ import annotations
 
+import math
 import os
+import re
+import sys
 import tempfile
+import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
 
-from carotid.errors import CarotidError
+from carotid.errors import CarotidError, CarotidWarning
 from carotid.io.atomic import atomic_path
 
 DETACHED_SUFFIXES = (".mhd", ".nhdr")
@@ -84,6 +89,13 @@ class Volume:
         ijk = (rel @ np.linalg.inv(self.direction).T) / np.asarray(self.spacing)
         return ijk[..., ::-1]
 
+    def same_grid(self, other: "Volume", tol_mm: float = 1e-3) -> bool:
+        """Whether ``other`` has the same shape and voxel centres (to ``tol_mm`` over the whole grid)."""
+        if other.array.shape != self.array.shape:
+            return False
+        corners = np.array(np.meshgrid(*[[0, n - 1] for n in self.array.shape], indexing="ij")).reshape(3, -1).T
+        return bool(np.abs(self.index_to_world(corners) - other.index_to_world(corners)).max() <= tol_mm)
+
     def contains(self, xyz: np.ndarray) -> np.ndarray:
         """Whether world points (mm), shape (..., 3), lie inside the voxel grid."""
         kji = self.world_to_index(xyz)
@@ -112,6 +124,42 @@ def _from_sitk(image: sitk.Image, source: str, dtype) -> Volume:
     return Volume(array, image.GetSpacing(), image.GetOrigin(), np.reshape(image.GetDirection(), (3, 3)))
 
 
+# Relative deviation from the median slice step above which a DICOM series counts as uneven.
+SLICE_STEP_TOLERANCE = 0.1
+
+
+def _slice_positions(reader: sitk.ImageSeriesReader, n: int) -> np.ndarray | None:
+    """Position of each slice of a read series along the slice normal, mm, shape (n,); None without the tags."""
+    try:
+        orient = np.array(reader.GetMetaData(0, "0020|0037").split("\\"), float).reshape(2, 3)
+        corners = np.array([reader.GetMetaData(i, "0020|0032").split("\\") for i in range(n)], float)
+    except (RuntimeError, ValueError):
+        return None
+    return corners @ np.cross(orient[0], orient[1])
+
+
+def check_slice_steps(positions: np.ndarray, source: str) -> None:
+    """Raise CarotidError when the slice positions (mm, in reading order) miss a slice or step unevenly.
+
+    A step more than ``SLICE_STEP_TOLERANCE`` away from the median step is a missing slice (a gap of about
+    a whole number of steps), a repeated slice (no step) or an uneven series; ITK would read any of them
+    onto a regular grid, putting every later slice at the wrong place.
+    """
+    steps = np.abs(np.diff(positions))
+    if len(steps) == 0:
+        return
+    median = float(np.median(steps))
+    bad = np.flatnonzero(np.abs(steps - median) > SLICE_STEP_TOLERANCE * median)
+    if median <= 0 or len(bad) == 0:
+        return
+    first = int(bad[0])
+    missing = int(np.sum(np.maximum(np.round(steps[bad] / max(median, 1e-9)) - 1, 0)))
+    kind = (f"{missing} missing slice(s)" if missing and np.all(steps[bad] > median) else "uneven slice steps")
+    raise CarotidError(f"{source}: DICOM series with {kind}: {steps[first]:.3g} mm between slices {first} and "
+                       f"{first + 1} where the series steps {median:.3g} mm ({len(bad)} such gap(s) in "
+                       f"{len(positions)} slices)")
+
+
 def _read_dicom_series(folder: Path) -> sitk.Image:
     reader = sitk.ImageSeriesReader()
     series = reader.GetGDCMSeriesIDs(str(folder))
@@ -119,35 +167,87 @@ def _read_dicom_series(folder: Path) -> sitk.Image:
         raise CarotidError(f"{folder}: folder holds no DICOM series")
     files = max((reader.GetGDCMSeriesFileNames(str(folder), s) for s in series), key=len)
     reader.SetFileNames(files)
-    return reader.Execute()
+    reader.MetaDataDictionaryArrayUpdateOn()
+    image = reader.Execute()
+    positions = _slice_positions(reader, len(files))
+    if positions is not None:
+        check_slice_steps(positions, str(folder))
+    return image
 
 
-def _nifti_nan_count(path: Path) -> int:
-    """NaN voxels stored in a floating-point NIfTI-1 file (ITK's reader silently turns them into 0).
+@contextmanager
+def itk_messages():
+    """Collect what ITK and its IO libraries print on the process's stderr while the block runs.
 
-    Integer files, and files that are not NIfTI-1, give 0.
+    ITK reports through its own output window and MetaIO/GDCM through ``std::cerr``, both straight to file
+    descriptor 2, past Python.  The descriptor is pointed at a temporary file for the block; the yielded
+    list receives, when the block ends, one entry per message with ITK's source-file lines and object
+    addresses removed.
+    """
+    messages: list[str] = []
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as sink:
+        os.dup2(sink.fileno(), 2)
+        try:
+            yield messages
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            text = sink.read().decode(errors="replace")
+            for block in re.split(r"\n\s*\n", text):
+                lines = [re.sub(r"^\w+ \(0x[0-9a-f]+\): ", "", line.strip()) for line in block.splitlines()
+                         if line.strip() and not re.match(r"^(WARNING|ERROR): In .*, line \d+$", line.strip())]
+                if lines:
+                    messages.append(" ".join(lines))
+
+
+def _nifti_scan(path: Path) -> tuple[float, int]:
+    """The fraction of voxel data missing from a NIfTI-1 file, and its NaN voxels.
+
+    ITK's reader fills the voxels of a truncated file with 0 and turns NaN into 0, both silently, so the
+    file is read once more as a stream: the data must cover ``prod(dim) * bitpix / 8`` bytes after
+    ``vox_offset`` (a truncated ``.gz`` stream counts as missing data), and a floating-point file is
+    scanned for NaN.  Files that are not NIfTI-1 give ``(0, 0)``.
+
+    Returns
+    -------
+    missing : float
+        Fraction of the voxel data the file lacks (0 when complete; to 1 MiB for a cut ``.gz``).
+    nans : int
+        NaN voxels (0 for integer files).
     """
     import gzip
     import struct
+    import zlib
 
     opener = gzip.open if path.name.lower().endswith(".gz") else open
     with opener(path, "rb") as f:
         header = f.read(348)
         if len(header) < 348:
-            return 0
+            return 0, 0
         endian = "<" if struct.unpack("<i", header[:4])[0] == 348 else ">"
         if struct.unpack(endian + "i", header[:4])[0] != 348:
-            return 0
+            return 0, 0
+        dims = struct.unpack(endian + "8h", header[40:56])
+        bitpix = struct.unpack(endian + "h", header[72:74])[0]
+        expected = math.prod(max(d, 1) for d in dims[1:1 + max(min(dims[0], 7), 0)]) * bitpix // 8
         dtype = {16: "f4", 64: "f8"}.get(struct.unpack(endian + "h", header[70:72])[0])
-        if dtype is None:
-            return 0
         offset = int(struct.unpack(endian + "f", header[108:112])[0])
-        f.read(max(offset - 348, 0))
-        count = 0
-        while chunk := f.read(1 << 24):
-            usable = len(chunk) - len(chunk) % np.dtype(dtype).itemsize
-            count += int(np.count_nonzero(np.isnan(np.frombuffer(chunk[:usable], endian + dtype))))
-        return count
+        received, nans, tail = 0, 0, b""
+        try:
+            f.read(max(offset - 348, 0))
+            while chunk := f.read(1 << 20):
+                received += len(chunk)
+                if dtype is not None:
+                    chunk = tail + chunk
+                    usable = len(chunk) - len(chunk) % np.dtype(dtype).itemsize
+                    nans += int(np.count_nonzero(np.isnan(np.frombuffer(chunk[:usable], endian + dtype))))
+                    tail = chunk[usable:]
+        except (EOFError, zlib.error, gzip.BadGzipFile):
+            pass  # a cut compressed stream: what was decoded counts
+        return max(expected - received, 0) / max(expected, 1), nans
 
 
 def read_image(path: str | os.PathLike, dtype=np.float32) -> Volume:
@@ -167,20 +267,35 @@ def read_image(path: str | os.PathLike, dtype=np.float32) -> Volume:
     Raises
     ------
     CarotidError
-        If the path is missing, is not an image, is not a scalar 3D volume, or
-        (NIfTI) holds NaN voxels.  Other formats keep NaN in the array, which
-        the stages refuse.
+        If the path is missing, is not an image, is not a scalar 3D volume, is a
+        DICOM series with missing, repeated or unevenly stepped slices, or (NIfTI)
+        is truncated or holds NaN voxels.  Other formats keep NaN in the array,
+        which the stages refuse.  ITK's own messages are part of the error.
+
+    Warns
+    -----
+    CarotidWarning
+        What ITK printed while reading an image it could read.
     """
     path = Path(path)
     if not path.exists():
         raise CarotidError(f"{path}: no such file or folder")
-    try:
-        image = _read_dicom_series(path) if path.is_dir() else sitk.ReadImage(str(path))
-    except RuntimeError as exc:
-        first = str(exc).strip().splitlines()[-1] if str(exc).strip() else ""
-        raise CarotidError(f"{path}: cannot be read as an image (DICOM, NIfTI, NRRD or MHA): {first}") from None
+    failure = None
+    with itk_messages() as messages:
+        try:
+            image = _read_dicom_series(path) if path.is_dir() else sitk.ReadImage(str(path))
+        except RuntimeError as exc:
+            failure = str(exc).strip().splitlines()[-1] if str(exc).strip() else ""
+    if failure is not None:
+        said = "; ".join([*messages, failure] if messages else [failure])
+        raise CarotidError(f"{path}: cannot be read as an image (DICOM, NIfTI, NRRD or MHA): {said}")
+    for message in messages:
+        warnings.warn(f"{path}: {message}", CarotidWarning, stacklevel=2)
     if path.is_file() and path.name.lower().endswith((".nii", ".nii.gz")):
-        nans = _nifti_nan_count(path)
+        missing, nans = _nifti_scan(path)
+        if missing:
+            raise CarotidError(f"{path}: the file is truncated: {100 * missing:.0f}% of its voxel data is missing "
+                               "(an interrupted copy or download?)")
         if nans:
             raise CarotidError(f"{path}: image has {nans} NaN voxels")
     return _from_sitk(image, str(path), dtype)

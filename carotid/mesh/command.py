@@ -19,6 +19,7 @@ from carotid.mesh.boundary import LABELS, cap_open_ends, edge_faces, label_flat_
 from carotid.mesh.core import CORES
 from carotid.mesh.io import write_mesh
 from carotid.mesh.mesher import build_mesh
+from carotid.stages import MeshStageParameters
 
 
 def read_surface(path: Path) -> pv.PolyData:
@@ -56,6 +57,9 @@ def mesh_case(surface: pv.PolyData, case_dir: Path, **params) -> dict:
 
 def cmd_mesh(args: argparse.Namespace) -> int:
     """Run ``carotid mesh`` (see :func:`register`)."""
+    p = MeshStageParameters(layers=args.layers, ratio=args.ratio, thickness_mm=args.thickness or 0.0,
+                            thickness_ratio=0.3 if args.thickness_ratio is None else args.thickness_ratio,
+                            size_mm=args.size or 0.0, core=args.core, lloyd_iterations=args.lloyd).validate()
     if args.from_surface is not None:
         if args.output is None:
             raise CarotidError("--from-surface needs -o CASE_DIR")
@@ -69,24 +73,14 @@ def cmd_mesh(args: argparse.Namespace) -> int:
             raise CarotidError(f"no surface.vtp in {args.case_dir}: run `carotid surface` first")
         surface = read_surface(path)
         case_dir = args.output or args.case_dir
-    thickness_ratio = args.thickness_ratio if args.thickness_ratio is not None else 0.3
-    quality = mesh_case(surface, case_dir, layers=args.layers, ratio=args.ratio, thickness=args.thickness,
-                        thickness_ratio=None if args.thickness is not None else thickness_ratio,
-                        size=args.size, core=args.core, lloyd_iterations=args.lloyd)
+    quality = mesh_case(surface, case_dir, layers=p.layers, ratio=p.ratio, thickness=p.thickness_mm or None,
+                        thickness_ratio=None if p.thickness_mm else p.thickness_ratio, size=p.size_mm or None,
+                        core=p.core, lloyd_iterations=p.lloyd_iterations)
     elements, core = quality["elements"], quality["core"]["min_dihedral"]
     print(f"mesh written to {case_dir}: {elements['tetrahedra']} tetrahedra ({elements['layer']} in "
           f"{args.layers} layers, {elements['core']} core), core min dihedral {core['min_deg']:.1f} deg, "
           f"volume error {quality['volume']['relative_error']:.1e}, {quality['seconds']['total']:.1f} s")
     return 0
-
-
-def _positive(kind):
-    def parse(text: str):
-        value = kind(text)
-        if value <= 0:
-            raise argparse.ArgumentTypeError(f"must be positive: {text}")
-        return value
-    return parse
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -100,10 +94,10 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--layers", type=int, default=10, help="boundary sub-layers N (default 10; 0: none)")
     p.add_argument("--ratio", type=float, default=1.2, help="height ratio f between sub-layers (default 1.2)")
     thick = p.add_mutually_exclusive_group()
-    thick.add_argument("--thickness", type=_positive(float), metavar="MM", help="total layer thickness in mm")
-    thick.add_argument("--thickness-ratio", type=_positive(float), metavar="R",
+    thick.add_argument("--thickness", type=float, metavar="MM", help="total layer thickness in mm")
+    thick.add_argument("--thickness-ratio", type=float, metavar="R",
                        help="total layer thickness as a fraction of the local radius (default 0.3)")
-    p.add_argument("--size", type=_positive(float), metavar="MM", help="core element size (default: surface edge)")
+    p.add_argument("--size", type=float, metavar="MM", help="core element size (default: surface edge)")
     p.add_argument("--core", choices=CORES, default="gmsh", help="core mesher (default gmsh HXT)")
     p.add_argument("--lloyd", type=int, default=5, metavar="N", help="Lloyd smoothing iterations (default 5)")
     p.set_defaults(func=cmd_mesh)

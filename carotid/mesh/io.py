@@ -9,13 +9,22 @@ temporary folder inside ``CASE_DIR`` and renamed into place):
   4, ...); cell array ``Region`` 0 for layer, 1 for core tetrahedra, -1
   for the boundary triangles.
 * ``mesh.msh``: Gmsh 4.1 with physical groups ``fluid`` (3D, tag 1) and
-  ``wall`` (tag 1), ``inlet`` (2), ``outlet_1`` (3), ``outlet_2`` (4), ... (2D,
-  tag = ``CellEntityIds``), readable by gmsh, dolfinx.io.gmshio and
-  OpenFOAM's gmshToFoam.
+  ``wall`` (tag 1), ``inlet`` (2) and one per outlet (3, 4, ...) (2D, tag =
+  ``CellEntityIds``), readable by gmsh, dolfinx.io.gmshio and OpenFOAM's
+  gmshToFoam.  The outlets are named by branch, ``outlet_ICA``,
+  ``outlet_ECA``, from the caps the surface stage records in
+  ``CASE_DIR/geometry.json``; ``outlet_1`` (label 3), ``outlet_2`` (4), ...
+  when there is no such record or it belongs to another surface (see
+  :func:`group_names`).
 * ``mesh.xdmf`` + ``mesh.h5``: tetrahedra with cell data ``Region``;
   ``mesh_facets.xdmf`` + ``mesh_facets.h5``: boundary triangles with
-  ``CellEntityIds`` (the legacy FEniCS recipe: one cell type per file).
-* ``mesh_quality.json``: the quality dict of :func:`carotid.mesh.build_mesh`.
+  ``CellEntityIds`` (the legacy FEniCS recipe: one cell type per file), and
+  the group names as XDMF ``Information`` (meshio's ``field_data``
+  ``{name: [tag, 2]}``, as for the ``.msh``).
+* ``mesh_quality.json``: the quality dict of :func:`carotid.mesh.build_mesh`
+  plus ``"groups"``: ``{name: CellEntityIds}`` of the boundary groups.
+
+All coordinates are in mm.
 """
 
 from __future__ import annotations
@@ -24,6 +33,7 @@ import json
 import os
 import shutil
 import tempfile
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
@@ -44,12 +54,59 @@ def split_cells(mesh: pv.UnstructuredGrid) -> tuple[np.ndarray, np.ndarray, np.n
             cells[pv.CellType.TRIANGLE], np.asarray(mesh.cell_data[LABELS])[tri])
 
 
-def group_name(label: int) -> str:
-    """Physical group name of a face label: wall, inlet, outlet_1 (label 3), outlet_2, ..."""
-    return {WALL: "wall", INLET: "inlet"}.get(int(label), f"outlet_{int(label) - INLET}")
+def recorded_caps(case_dir: Path) -> list[dict]:
+    """The caps the surface stage recorded in ``case_dir/geometry.json`` (``[]`` when there are none)."""
+    try:
+        return json.loads((Path(case_dir) / "geometry.json").read_text()).get("caps", [])
+    except (OSError, ValueError):
+        return []
 
 
-def write_gmsh(points: np.ndarray, tets: np.ndarray, triangles: np.ndarray, labels: np.ndarray, path: Path) -> None:
+def group_names(points: np.ndarray, triangles: np.ndarray, labels: np.ndarray, caps: list[dict]) -> dict[int, str]:
+    """Physical group name of every face label present: wall, inlet, then the outlets.
+
+    The outlets are ``outlet_<branch>`` when ``caps`` name every outlet label of the mesh, with distinct
+    names, and each recorded centre lies within half its equivalent radius of the area-weighted centroid
+    of that label's triangles (so a ``geometry.json`` left by another surface is not used); otherwise
+    ``outlet_1`` (label 3), ``outlet_2`` (4), ...
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+        Node coordinates, mm.
+    triangles : ndarray, shape (b, 3)
+        Boundary triangles.
+    labels : ndarray, shape (b,)
+        Their ``CellEntityIds`` (wall 1, inlet 2, outlets 3, 4, ...).
+    caps : list of dict
+        :func:`recorded_caps`: ``id`` (label), ``name`` (branch), ``centre`` (mm) and ``equivalent_radius``
+        (mm) of each cap (see :func:`carotid.surface.clip.cap_info`).
+
+    Returns
+    -------
+    dict
+        Label -> name.
+    """
+    present = np.unique(labels).tolist()
+    names = {k: {WALL: "wall", INLET: "inlet"}.get(k, f"outlet_{k - INLET}") for k in present}
+    outlets = [k for k in present if k > INLET]
+    record = {int(c["id"]): c for c in caps}
+    if not outlets or any(k not in record for k in outlets):
+        return names
+    p = points[triangles]
+    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    weighted = np.stack([np.bincount(labels, area * p[:, :, d].mean(axis=1)) for d in range(3)], axis=1)
+    centroid = weighted[outlets] / np.bincount(labels, area)[outlets, None]
+    centre = np.array([record[k]["centre"] for k in outlets], dtype=float)
+    radius = np.array([record[k]["equivalent_radius"] for k in outlets], dtype=float)
+    branch = [str(record[k]["name"]) for k in outlets]
+    if len(set(branch)) == len(branch) and np.all(np.linalg.norm(centroid - centre, axis=1) <= 0.5 * radius):
+        names.update({k: f"outlet_{b}" for k, b in zip(outlets, branch)})
+    return names
+
+
+def write_gmsh(points: np.ndarray, tets: np.ndarray, triangles: np.ndarray, labels: np.ndarray,
+               names: dict[int, str], path: Path) -> None:
     """Gmsh 4.1 file with one discrete entity per face label and physical groups (see module doc)."""
     with gmsh_session() as gmsh:
         gmsh.model.add("carotid")
@@ -59,7 +116,7 @@ def write_gmsh(points: np.ndarray, tets: np.ndarray, triangles: np.ndarray, labe
         for label in np.unique(labels):
             surface = gmsh.model.addDiscreteEntity(2)
             gmsh.model.mesh.addElementsByType(surface, 2, [], (triangles[labels == label] + 1).ravel())
-            gmsh.model.addPhysicalGroup(2, [surface], int(label), name=group_name(label))
+            gmsh.model.addPhysicalGroup(2, [surface], int(label), name=names[int(label)])
         gmsh.model.addPhysicalGroup(3, [volume], 1, name="fluid")
         gmsh.option.setNumber("Mesh.MshFileVersion", 4.1)
         gmsh.option.setNumber("Mesh.Binary", 1)
@@ -67,13 +124,24 @@ def write_gmsh(points: np.ndarray, tets: np.ndarray, triangles: np.ndarray, labe
 
 
 def write_xdmf(points: np.ndarray, tets: np.ndarray, region: np.ndarray, triangles: np.ndarray,
-               labels: np.ndarray, folder: Path) -> None:
-    """``mesh.xdmf``/``.h5`` (tetrahedra, ``Region``) and ``mesh_facets.xdmf``/``.h5`` (triangles, labels)."""
+               labels: np.ndarray, names: dict[int, str], folder: Path) -> None:
+    """``mesh.xdmf``/``.h5`` (tetrahedra, ``Region``) and ``mesh_facets.xdmf``/``.h5`` (triangles, labels,
+    group ``names``: label -> name)."""
     import meshio
 
     meshio.write(folder / "mesh.xdmf", meshio.Mesh(points, [("tetra", tets)], cell_data={"Region": [region]}))
-    meshio.write(folder / "mesh_facets.xdmf",
-                 meshio.Mesh(points, [("triangle", triangles)], cell_data={LABELS: [labels]}))
+    facets = folder / "mesh_facets.xdmf"
+    meshio.write(facets, meshio.Mesh(points, [("triangle", triangles)], cell_data={LABELS: [labels]}))
+    # meshio writes no field_data to XDMF but reads it back from an Information element holding
+    # <main><map key="name" dim="2">tag</map>...</main>
+    tree = ET.parse(facets)
+    table = ET.Element("main")
+    for label, name in names.items():
+        ET.SubElement(table, "map", key=name, dim="2").text = str(label)
+    info = ET.Element("Information", Name="Information", Value=str(len(names)))
+    info.text = ET.tostring(table, encoding="unicode")
+    tree.find("Domain/Grid").insert(0, info)
+    tree.write(facets, encoding="utf-8", xml_declaration=True)
 
 
 def write_mesh(mesh: pv.UnstructuredGrid, case_dir: str | os.PathLike, quality: dict | None = None) -> Path:
@@ -84,7 +152,8 @@ def write_mesh(mesh: pv.UnstructuredGrid, case_dir: str | os.PathLike, quality: 
     mesh : pyvista.UnstructuredGrid
         Output of :func:`carotid.mesh.build_mesh`.
     case_dir : path
-        Case folder (created if needed).
+        Case folder (created if needed); the outlet groups are named from its ``geometry.json`` when it
+        records this surface's caps (:func:`group_names`).
     quality : dict, optional
         Quality report; ``mesh_quality.json`` is written when given.
 
@@ -97,13 +166,15 @@ def write_mesh(mesh: pv.UnstructuredGrid, case_dir: str | os.PathLike, quality: 
     case_dir.mkdir(parents=True, exist_ok=True)
     points = np.asarray(mesh.points, dtype=float)
     tets, region, triangles, labels = split_cells(mesh)
+    names = group_names(points, triangles, labels, recorded_caps(case_dir))
     staging = Path(tempfile.mkdtemp(prefix=".mesh.", dir=case_dir))
     try:
         mesh.save(staging / "mesh.vtu")
-        write_gmsh(points, tets, triangles, labels, staging / "mesh.msh")
-        write_xdmf(points, tets, region.astype(np.int32), triangles, labels.astype(np.int32), staging)
+        write_gmsh(points, tets, triangles, labels, names, staging / "mesh.msh")
+        write_xdmf(points, tets, region.astype(np.int32), triangles, labels.astype(np.int32), names, staging)
         if quality is not None:
-            (staging / "mesh_quality.json").write_text(json.dumps(quality, indent=2) + "\n")
+            report = {**quality, "groups": {name: label for label, name in names.items()}}
+            (staging / "mesh_quality.json").write_text(json.dumps(report, indent=2) + "\n")
         for name in FILES:
             if (staging / name).exists():
                 os.replace(staging / name, case_dir / name)

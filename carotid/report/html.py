@@ -1,15 +1,18 @@
 """The self-contained HTML report of a case: ``CASE_DIR/report.html``.
 
-Each section is built from the files a stage wrote; a stage that has not run
-yields a section that says so instead of failing the report.  Pictures are
-PNG embedded as data URIs, so the file can be mailed or archived alone.
+The first page is the clinical summary: the stenosis verdict, the diameter profile along the CCA and
+ICA, the wall shear stress maps, the named branches, the wall area exposed to low and oscillating shear
+per branch, the inflow waveform and outlet split, and a warning for every stale, partial or failed
+result.  The detail of each stage follows.  Each part is built from the files a stage wrote, whatever
+wrote them (``carotid run`` or the per-stage commands); a stage that has not run yields a note instead
+of failing the report.  Pictures are PNG embedded as data URIs, so the file can be mailed or archived
+alone.
 """
 
 from __future__ import annotations
 
 import base64
 import html
-import json
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -17,74 +20,466 @@ from pathlib import Path
 import numpy as np
 
 from carotid import __version__
+from carotid.flow.indices import HIGH_OSI, LOW_TAWSS_PA, node_areas
 from carotid.io import atomic_path, read_image
 from carotid.report import figures
+from carotid.report.checks import (MAX_PERIODICITY_ERROR, Check, periodicity_error, quality_checks, read_json,
+                                   stale_warnings, stenosis_category)
+
+# Colour-map clipping of the wall maps: the percentile of the values at the top colour (OSI keeps its
+# natural range 0-0.5).
+CLIP_PERCENTILE = 98.0
+WALL_MAPS = (("TAWSS", "TAWSS (Pa)", "viridis"), ("OSI", "OSI (-)", "magma"), ("RRT", "RRT (1/Pa)", "magma"),
+             ("ECAP", "ECAP (1/Pa)", "magma"))
+BRANCH_COLOURS = ("#4c72b0", "#dd8452", "#55a868", "#8172b3", "#937860", "#da8bc3")
+CATEGORY_CLASS = {"<50 %": "mild", "50-69 %": "moderate", ">=70 %": "severe", "near-occlusion": "severe"}
 
 STYLE = """
-body { font-family: system-ui, sans-serif; margin: 2em auto; max-width: 1100px; color: #222; }
-h1 { border-bottom: 2px solid #b22; } h2 { color: #b22; margin-top: 2em; }
-figure { margin: 1em 0; } figure img { max-width: 100%; border: 1px solid #ddd; }
-figcaption { font-size: 0.9em; color: #555; }
-table { border-collapse: collapse; margin: 0.5em 0 1em; font-size: 0.9em; }
-td, th { border: 1px solid #ccc; padding: 0.2em 0.6em; text-align: left; vertical-align: top; }
+body { font-family: system-ui, sans-serif; margin: 0.6em auto; max-width: 1360px; padding: 0 12px; color: #222; }
+h1 { font-size: 1.35em; margin: 0.2em 0; } h1 small { font-weight: normal; color: #666; font-size: 0.65em; }
+h2 { color: #b22; margin: 1.6em 0 0.4em; border-bottom: 1px solid #ddd; }
+h3 { margin: 0.2em 0 0.3em; font-size: 1.05em; }
+figure { margin: 0.3em 0; } figure img { max-width: 100%; }
+figcaption { font-size: 0.8em; color: #555; }
+table { border-collapse: collapse; margin: 0.3em 0 0.8em; font-size: 0.85em; }
+caption { text-align: left; font-weight: 600; padding: 0.2em 0; }
+td, th { border: 1px solid #ccc; padding: 0.15em 0.5em; text-align: left; vertical-align: top; }
+th { background: #f6f6f6; font-weight: normal; }
 .missing { color: #888; font-style: italic; }
+.top { display: grid; grid-template-columns: 370px 1fr 340px; gap: 14px; align-items: start; }
+.top figure img { max-height: 290px; }
+.maps { display: grid; grid-template-columns: repeat(4, 1fr); gap: 8px; text-align: center; }
+.maps figure img { max-height: 400px; width: auto; }
+.more { display: grid; grid-template-columns: 1fr 1fr; gap: 14px; align-items: start; }
+.more figure img { max-height: 560px; width: auto; }
+.verdict table { font-size: 0.8em; margin: 0; } .verdict p { margin: 0.2em 0 0.4em; }
+.verdict .grade { font-size: 1.9em; font-weight: 700; }
+.badge { display: inline-block; padding: 0.1em 0.5em; border-radius: 4px; color: white; font-weight: 600; }
+.mild { background: #2a7d2e; } .moderate { background: #c77800; } .severe { background: #b22; }
+.warnings { background: #fff4e5; border-left: 4px solid #c77800; padding: 0.3em 0.8em; font-size: 0.85em; }
+.warnings ul { margin: 0.2em 0; padding-left: 1.1em; } .ok { color: #2a7d2e; }
+.fail { color: #b22; font-weight: 600; } .pass { color: #2a7d2e; }
 """
 
 
 @dataclass
+class Table:
+    """A table: caption, column header (None for name-value rows) and rows."""
+
+    caption: str
+    rows: list
+    header: list | None = None
+
+
+@dataclass
 class Section:
-    """One report section: pictures (caption, PNG bytes), tables (caption, rows) and a note."""
+    """One detail section: pictures (caption, PNG bytes), tables and notes."""
 
     title: str
     figures: list[tuple[str, bytes]] = field(default_factory=list)
-    tables: list[tuple[str, list[tuple[str, object]]]] = field(default_factory=list)
+    tables: list[Table] = field(default_factory=list)
     note: str = ""
 
 
-def _read_json(path: Path) -> dict:
-    return json.loads(path.read_text()) if path.exists() else {}
+@dataclass
+class Case:
+    """The records of a case folder (each an empty dict when its stage has not run)."""
+
+    dir: Path
+    record: dict
+    segmentation: dict
+    geometry: dict
+    surface_quality: dict
+    mesh_quality: dict
+    flow: dict
+
+    @classmethod
+    def read(cls, case_dir: Path) -> "Case":
+        return cls(case_dir, read_json(case_dir / "case.json"), read_json(case_dir / "segmentation" / "report.json"),
+                   read_json(case_dir / "geometry.json"), read_json(case_dir / "surface_quality.json"),
+                   read_json(case_dir / "mesh_quality.json"), read_json(case_dir / "flow" / "summary.json"))
+
+    def cap_names(self) -> dict[int, str]:
+        """Cap id (``CellEntityIds`` 2, 3, ...) -> branch name, from ``geometry.json`` or the surface record."""
+        caps = self.geometry.get("caps") or self.surface_quality.get("caps") or []
+        return {int(cap["id"]): str(cap.get("name", cap["id"])) for cap in caps}
 
 
-def flatten(data, prefix: str = "") -> list[tuple[str, object]]:
-    """Nested dicts as (dotted key, value) rows; lists of numbers shortened."""
+# Unit suffixes of record keys and how the tables print them.
+_UNITS = (("_per_mm", "1/mm"), ("_m3s", "m³/s"), ("_mm3", "mm³"), ("_mm2", "mm²"), ("_mm", "mm"),
+          ("_deg", "°"), ("_pa", "Pa"), ("_mb", "MB"), ("_hu", "HU"), ("_s", "s"))
+
+
+def readable(key: str) -> str:
+    """A dotted record key as a table label: words, with the unit suffix as a unit (``dt_s`` -> ``dt (s)``)."""
+    parts, unit = [], ""
+    for part in key.split("."):
+        for suffix, name in _UNITS:
+            if part.endswith(suffix) and len(part) > len(suffix):
+                part, unit = part[: -len(suffix)], name
+                break
+        parts.append(part.replace("_", " "))
+    text = " › ".join(parts)
+    return f"{text} ({unit})" if unit else text
+
+
+def _value(value) -> str:
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    if value is None:
+        return "–"
+    return str(value)
+
+
+def flatten(data, prefix: str = "") -> list[tuple[str, str]]:
+    """Nested dicts as (readable label, value) rows.
+
+    Lists of up to 8 numbers are joined; longer lists (histograms, per-iteration traces) are left to
+    the JSON records; lists of dicts are expanded under each item's name.
+    """
     rows = []
     for key, value in data.items():
         name = f"{prefix}{key}"
         if isinstance(value, dict):
             rows += flatten(value, f"{name}.")
+        elif isinstance(value, list) and any(isinstance(v, dict) for v in value):
+            for number, item in enumerate(value):
+                label = (item.get("name") or item.get("branch") or number) if isinstance(item, dict) else number
+                rows += flatten(item, f"{name}.{label}.") if isinstance(item, dict) else \
+                    [(readable(f"{name}.{label}"), _value(item))]
+        elif isinstance(value, list) and len(value) > 8:
+            continue
+        elif isinstance(value, list):
+            rows.append((readable(name), ", ".join(_value(v) for v in value)))
         else:
-            if isinstance(value, float):
-                value = f"{value:.4g}"
-            elif isinstance(value, list) and any(isinstance(v, dict) for v in value):
-                for number, item in enumerate(value):
-                    label = item.get("name") or item.get("branch") or number if isinstance(item, dict) else number
-                    rows += flatten(item, f"{name}.{label}.") if isinstance(item, dict) else [(f"{name}.{label}", item)]
-                continue
-            elif isinstance(value, list) and len(value) > 8:
-                value = f"[{len(value)} values]"
-            elif isinstance(value, list):
-                value = ", ".join(f"{v:.4g}" if isinstance(v, float) else str(v) for v in value)
-            rows.append((name, value))
+            rows.append((readable(name), _value(value)))
     return rows
 
 
-def segmentation_section(case_dir: Path, record: dict) -> Section:
-    """Input slices with the lumen contour, and the segmentation report."""
+def active_parameters(params: dict) -> dict:
+    """Parameters without those of a switched-off option: ``wall_*`` go when ``wall`` is false."""
+    off = [key for key, value in params.items() if value is False]
+    return {key: value for key, value in params.items() if not any(key.startswith(f"{flag}_") for flag in off)}
+
+
+def checks_table(checks: list[Check]) -> Table:
+    """Quality criteria of one stage with their value and a pass/fail flag."""
+    rows = [(c.quantity, _value(c.value), c.criterion, "pass" if c.passed else "FAIL") for c in checks]
+    stage = f" of the {checks[0].stage} stage" if checks else ""
+    return Table(f"Quality checks{stage}", rows, ["quantity", "value", "criterion", "status"])
+
+
+def find_image(case: Case) -> tuple[Path | None, str]:
+    """The CT image a case was segmented from, checked against the segmentation grid.
+
+    Candidates: ``case.json``'s ``input`` (``carotid run``), then ``segmentation/report.json``'s
+    ``image.path`` (relative paths taken from the case folder).
+
+    Returns
+    -------
+    (Path or None, str)
+        The image, or None with the reason it is missing.
+    """
+    candidates = [case.record.get("input"), case.segmentation.get("image", {}).get("path")]
+    for text in filter(None, candidates):
+        path = Path(text) if Path(text).is_absolute() else case.dir / text
+        if path.exists():
+            return path, ""
+    return None, ("the input CT image is not recorded in this case folder" if not any(candidates)
+                  else f"the input CT image {next(filter(None, candidates))} is not found")
+
+
+def branch_regions(points: np.ndarray, branches) -> np.ndarray:
+    """Index of the branch whose axis passes nearest to each point.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+        Wall points, mm.
+    branches : list of Branch
+        Centerline branches.
+
+    Returns
+    -------
+    ndarray of int, shape (n,)
+    """
+    from scipy.spatial import cKDTree
+
+    axis = np.concatenate([b.points for b in branches])
+    owner = np.repeat(np.arange(len(branches)), [len(b.points) for b in branches])
+    return owner[cKDTree(axis).query(points)[1]]
+
+
+def exposure_rows(wall, regions: np.ndarray, names: list[str]) -> list[tuple]:
+    """Fraction of the wall area with low TAWSS, high OSI and both, per branch region and overall.
+
+    Parameters
+    ----------
+    wall : pyvista.PolyData
+        ``flow/indices.vtp`` (point arrays ``TAWSS`` in Pa and ``OSI``).
+    regions : ndarray of int, shape (n_points,)
+        Branch index of each point.
+    names : list of str
+        Branch names.
+
+    Returns
+    -------
+    list of tuple
+        (region, area mm², % TAWSS < 0.4 Pa, % OSI > 0.2, % both), formatted.
+    """
+    area = node_areas(wall.points, wall.triangulate().faces.reshape(-1, 4)[:, 1:])
+    low = np.asarray(wall["TAWSS"]) < LOW_TAWSS_PA
+    high = np.asarray(wall["OSI"]) > HIGH_OSI
+    groups = np.r_[regions, np.full(len(regions), len(names))]  # each point once per branch, once overall
+    weights = np.tile(area, 2)
+    total = np.bincount(groups, weights, minlength=len(names) + 1)
+
+    def percent(flag):
+        return 100.0 * np.bincount(groups, weights * np.tile(flag, 2), minlength=len(names) + 1) / \
+            np.maximum(total, 1e-12)
+
+    columns = zip([*names, "whole wall"], total, percent(low), percent(high), percent(low & high))
+    return [(name, f"{a:.0f}", f"{lo:.1f}", f"{hi:.1f}", f"{both:.1f}") for name, a, lo, hi, both in columns if a > 0]
+
+
+def _flow_series(case: Case) -> dict | None:
+    """Output times (s), inflow and outlet flows (mL/s) and pressure drop (Pa) from the flow checkpoint."""
+    from carotid.flow.output import load_checkpoint
+
+    path = case.dir / "flow" / "checkpoint.npz"
+    if not path.exists():
+        return None
+    records = [r for r in load_checkpoint(path)[1]["records"] if r["step"] > 0 and r.get("diagnostics")]
+    if len(records) < 2:
+        return None
+    return {"time": np.array([r["time"] for r in records]),
+            "inflow": 1e6 * np.array([r["diagnostics"]["inflow"] for r in records]),
+            "outflow": 1e6 * np.array([r["diagnostics"]["outflow"] for r in records]),
+            "dp": np.array([r["diagnostics"]["dp"] for r in records])}
+
+
+def stenosis_location(stenosis: dict) -> str:
+    """Where a graded stenosis lies, in words."""
+    side = "proximal to" if stenosis["branch"] == "CCA" else "distal to"
+    point = ", ".join(f"{v:.1f}" for v in stenosis["location_mm"])
+    return (f"{stenosis['branch']}, {stenosis['arclength_from_bifurcation_mm']:.1f} mm {side} the bifurcation "
+            f"(LPS {point} mm)")
+
+
+def verdict_html(geometry: dict) -> str:
+    """The stenosis verdict: NASCET and ECST grades, category, diameters and location."""
+    grade = geometry.get("stenosis")
+    if not grade:
+        return ('<div class="verdict"><h3>Stenosis</h3><p class="missing">No stenosis grading: '
+                "the centerline stage has not run or found no gradable branch.</p></div>")
+    category = stenosis_category(grade["nascet"], grade["min_diameter_mm"], grade["distal_diameter_mm"])
+    rows = [("ECST", f"{100 * grade['ecst']:.1f} %"),
+            ("area reduction", f"{100 * grade['area_reduction']:.1f} %"),
+            ("minimal diameter", f"{grade['min_diameter_mm']:.2f} mm"),
+            ("distal ICA diameter (NASCET reference)", f"{grade['distal_diameter_mm']:.2f} mm"),
+            ("local diameter (ECST reference)", f"{grade['local_diameter_mm']:.2f} mm"),
+            ("location", stenosis_location(grade))]
+    taper = ("<p class='missing'>The narrowest section ends the measured branch: no distal reference, "
+             "graded 0.</p>" if grade.get("distal_reference") == "none" else "")
+    body = "".join(f"<tr><th>{html.escape(k)}</th><td>{html.escape(v)}</td></tr>" for k, v in rows)
+    return (f'<div class="verdict" id="verdict"><h3>Stenosis ({html.escape(grade["branch"])})</h3>'
+            f'<div class="grade">NASCET {100 * grade["nascet"]:.1f} %</div>'
+            f'<p><span class="badge {CATEGORY_CLASS[category]}">{html.escape(category)}</span> '
+            f"NASCET category</p><table>{body}</table>{taper}</div>")
+
+
+def _figure(caption: str, png: bytes, element_id: str = "") -> str:
+    data = base64.b64encode(png).decode()
+    ident = f' id="{element_id}"' if element_id else ""
+    return (f'<figure{ident}><img alt="{html.escape(caption)}" src="data:image/png;base64,{data}">'
+            f"<figcaption>{html.escape(caption)}</figcaption></figure>")
+
+
+def _table_html(table: Table) -> str:
+    if not table.rows:
+        return ""
+    head = "".join(f"<th>{html.escape(h)}</th>" for h in table.header) if table.header else ""
+    body = []
+    for row in table.rows:
+        cells = [f"<th>{html.escape(str(row[0]))}</th>" if not table.header else
+                 f"<td>{html.escape(str(row[0]))}</td>"]
+        for cell in row[1:]:
+            flag = {"pass": ' class="pass"', "FAIL": ' class="fail"'}.get(str(cell), "")
+            cells.append(f"<td{flag}>{html.escape(str(cell))}</td>")
+        body.append(f"<tr>{''.join(cells)}</tr>")
+    return (f"<table><caption>{html.escape(table.caption)}</caption>"
+            + (f"<tr>{head}</tr>" if head else "") + "".join(body) + "</table>")
+
+
+def profile_figure(case: Case) -> bytes | None:
+    """The diameter profile along the CCA and the graded branch, or None without centerlines."""
+    from carotid.centerline import read_centerlines
+    from carotid.centerline.axes import arclength
+
+    if not (case.dir / "centerlines.vtp").exists():
+        return None
+    branches = {b.name: b for b in read_centerlines(case.dir / "centerlines.vtp").branches}
+    grade = case.geometry.get("stenosis")
+    name = grade["branch"] if grade else "ICA"
+    target = branches.get(name)
+    if target is None:
+        return None
+    parts = [(arclength(target.points), target)]
+    if name != "CCA" and "CCA" in branches:  # the CCA runs to the bifurcation: negative distances
+        cca = branches["CCA"]
+        parts.insert(0, (arclength(cca.points) - arclength(cca.points)[-1], cca))
+    s = np.concatenate([p[0] for p in parts])
+    diameter = 2.0 * np.concatenate([p[1].radii for p in parts])
+    section = None
+    if all(p[1].areas is not None for p in parts):
+        section = 2.0 * np.sqrt(np.concatenate([p[1].areas for p in parts]) / np.pi)
+    if name == "CCA":
+        s = s - s[-1]
+        grade = dict(grade, arclength_from_bifurcation_mm=-grade["arclength_from_bifurcation_mm"])
+    label = "distance from the bifurcation (mm): CCA < 0 < " + name if name != "CCA" else \
+        "distance from the bifurcation along the CCA (mm)"
+    return figures.diameter_profile(s, diameter, section, grade, label)
+
+
+def case_warnings(case: Case) -> list[str]:
+    """Every stale result, partial result and failed quality check of a case, one sentence each."""
+    warnings = stale_warnings(case.dir, case.record, case.geometry, case.segmentation, case.mesh_quality,
+                              case.flow)
+    failed = [c for c in quality_checks(case.segmentation, case.surface_quality, case.mesh_quality, case.flow)
+              if not c.passed]
+    warnings += [f"{c.stage} quality check failed: {c.quantity} = {_value(c.value)} (criterion {c.criterion})."
+                 for c in failed]
+    cycles = case.flow.get("cycles")
+    if cycles is not None and cycles < 1.0 - 1e-6:
+        warnings.append(f"The flow ran {cycles:.2g} of a cardiac cycle: the wall indices (TAWSS, OSI, RRT, ECAP) "
+                        "average less than one cycle and are partial.")
+    return warnings
+
+
+def summary_html(case: Case) -> str:
+    """The clinical first page."""
+    import pyvista as pv
+
+    from carotid.centerline import read_centerlines
+
+    warnings = case_warnings(case)
+    notes = "".join(f"<li>{html.escape(w)}</li>" for w in warnings) or '<li class="ok">No stale, partial or ' \
+                                                                        "failed results.</li>"
+    profile = profile_figure(case)
+    top = [verdict_html(case.geometry),
+           _figure("Lumen diameter along the CCA and the graded branch, with the stenosis and its references",
+                   profile, "profile") if profile else '<p class="missing">No centerlines: no diameter profile.</p>',
+           f'<div class="warnings" id="warnings"><h3>Warnings</h3><ul>{notes}</ul></div>']
+    parts = [f'<div class="top">{"".join(top)}</div>']
+
+    indices_path = case.dir / "flow" / "indices.vtp"
+    wall = pv.read(indices_path) if indices_path.exists() else None
+    if wall is not None:
+        maps = []
+        for name, label, cmap in WALL_MAPS:
+            if name not in wall.array_names:
+                continue
+            values = np.asarray(wall[name])
+            if name == "OSI":
+                clim, clip = (0.0, 0.5), "full range 0-0.5"
+            else:
+                top_value = float(np.nanpercentile(values, CLIP_PERCENTILE)) or 1.0
+                clim, clip = (0.0, top_value), (f"clipped at the {CLIP_PERCENTILE:g}th percentile, {top_value:.3g}; "
+                                                f"maximum {np.nanmax(values):.3g}")
+            maps.append(_figure(f"{label}: colour scale {clip}", figures.wall_map(wall, name, label, clim, cmap)))
+        parts.append(f'<div class="maps" id="wss-maps">{"".join(maps)}</div>')
+    else:
+        parts.append('<p class="missing">The flow stage has not run: no wall shear stress maps.</p>')
+
+    left, right = [], []
+    branches = read_centerlines(case.dir / "centerlines.vtp").branches \
+        if (case.dir / "centerlines.vtp").exists() else []
+    names = [b.name for b in branches]
+    surface_path = case.dir / "surface.vtp"
+    if surface_path.exists() and branches:
+        surface = pv.read(surface_path)
+        ids = np.asarray(surface["CellEntityIds"])
+        caps = case.cap_names()
+        cap_ids = sorted(set(np.unique(ids).tolist()) - {1})
+        regions = branch_regions(np.asarray(surface.cell_centers().points), branches)
+        labels = np.where(ids == 1, regions, len(names) + np.searchsorted(cap_ids, ids))
+        legend = [(f"{n} wall", BRANCH_COLOURS[k % len(BRANCH_COLOURS)]) for k, n in enumerate(names)]
+        legend += [(f"{'inlet' if c == 2 else 'outlet'} {caps.get(c, c)}", "0.35" if c == 2 else "0.65")
+                   for c in cap_ids]
+        grade = case.geometry.get("stenosis")
+        marker = (np.array(grade["location_mm"]), f"stenosis, NASCET {100 * grade['nascet']:.0f} %") \
+            if grade else None
+        left.append(_figure("Lumen surface: branches named by their nearest centerline, caps, stenosis in red",
+                            figures.labelled_surface(surface, labels, legend, marker)))
+    if wall is not None and branches and {"TAWSS", "OSI"} <= set(wall.array_names):
+        rows = exposure_rows(wall, branch_regions(np.asarray(wall.points), branches), names)
+        right.append(_table_html(Table(f"Wall area with low TAWSS (< {LOW_TAWSS_PA} Pa) and high OSI "
+                                       f"(> {HIGH_OSI}), per branch", rows,
+                                       ["region", "area (mm²)", "low TAWSS (%)", "high OSI (%)", "both (%)"])))
+    right += flow_summary_html(case)
+    parts.append(f'<div class="more">{"".join(left) or "<div></div>"}<div>{"".join(right)}</div></div>')
+    return "\n".join(parts)
+
+
+def flow_summary_html(case: Case) -> list[str]:
+    """The inflow waveform, the outlet split achieved and the cycle state."""
+    if not case.flow:
+        return []
+    caps = case.cap_names()
+    outlets = case.flow.get("mass_balance", {}).get("outlets", {})
+    rows = [(caps.get(int(label), label), f"{100 * o['target_fraction']:.1f}",
+             f"{100 * o['fraction_of_inflow_mean']:.1f}", f"{100 * o['error_max']:.2g}")
+            for label, o in outlets.items()]
+    parts = [_table_html(Table("Outlet flow split (last cycle)", rows,
+                               ["outlet", "target (%)", "achieved, mean (%)", "largest error (points of %)"]))]
+    series = _flow_series(case)
+    cycles = case.flow.get("cycles", 0.0)
+    period = case.flow.get("time_s", 0.0) / cycles if cycles else 0.0
+    if series is not None:
+        named = {"inflow (CCA)": (series["time"], series["inflow"])}
+        for j, label in enumerate(outlets):
+            named[f"outflow {caps.get(int(label), label)}"] = (series["time"], series["outflow"][:, j])
+        parts.append(_figure("Inflow waveform and outlet flows as computed",
+                             figures.time_series(named, "time (s)", "flow (mL/s)")))
+    error = periodicity_error(series["time"], series["dp"], period) if series is not None and period else None
+    state = (f"{cycles:.2g} cardiac cycle(s) of {period:.3g} s run; the indices average the last "
+             f"{min(cycles, 1.0):.2g} cycle. ")
+    if error is None:
+        state += "Cycle-to-cycle periodicity is not assessed (it needs two cycles or more): the first cycle " \
+                 "includes the start-up transient."
+    else:
+        verdict = "periodic" if error <= MAX_PERIODICITY_ERROR else "not yet periodic"
+        state += (f"The pressure drop changes by {100 * error:.2g} % of its range between the last two cycles: "
+                  f"{verdict}.")
+    parts.append(f"<p>{html.escape(state)}</p>")
+    return parts
+
+
+def segmentation_section(case: Case) -> Section:
+    """Input slices with the lumen contour, and the segmentation record."""
     section = Section("Segmentation")
-    folder = case_dir / "segmentation"
+    folder = case.dir / "segmentation"
     if not (folder / "mask.nii.gz").exists():
         section.note = "The segmentation stage has not run."
         return section
-    report = _read_json(folder / "report.json")
-    source = Path(record.get("input", ""))
-    if source.exists():
-        picture = figures.segmentation_slices(read_image(source), read_image(folder / "mask.nii.gz"))
-        section.figures.append(("CT slices through the lumen centroid, lumen boundary in red", picture))
+    source, reason = find_image(case)
+    mask = read_image(folder / "mask.nii.gz")
+    image = read_image(source) if source is not None else None
+    if image is not None and image.array.shape != mask.array.shape:
+        image, reason = None, f"the image {source} is not on the segmentation grid"
+    if image is not None:
+        section.figures.append(("CT slices through the lumen centroid (axial: anterior up, patient's right on the "
+                                "left), lumen boundary in red", figures.segmentation_slices(image, mask)))
     else:
-        section.note = f"Input image {source} not found: slices omitted."
-    keep = ("method", "initialisation", "iterations", "converged", "lumen_volume_mm3", "seconds", "peak_rss_mb")
-    section.tables.append(("Result", flatten({k: report[k] for k in keep if k in report})))
-    section.tables.append(("Parameters", flatten(report.get("parameters", {}))))
+        section.note = f"CT slices omitted: {reason}."
+    report = case.segmentation
+    keep = ("method", "initialisation", "iterations", "converged", "lumen_volume_mm3", "seconds", "peak_rss_mb",
+            "intensity")
+    section.tables.append(Table("Result", flatten({k: report[k] for k in keep if k in report})))
+    section.tables.append(Table("Parameters", flatten(active_parameters(report.get("parameters", {})))))
+    section.tables.append(checks_table(quality_checks(report, {}, {}, {})))
     return section
 
 
@@ -100,36 +495,50 @@ def _triangle_min_angles(surface) -> np.ndarray:
     return np.min(angles, axis=0)
 
 
-def geometry_section(case_dir: Path) -> Section:
-    """The clipped surface with its labelled caps and centerlines; stenosis and quality tables."""
+def geometry_section(case: Case) -> Section:
+    """Branches, stenosis gradings, caps and the surface quality."""
     import pyvista as pv
 
     section = Section("Geometry: centerlines, stenosis and surface")
-    geometry = _read_json(case_dir / "geometry.json")
-    surface_path, centerline_path = case_dir / "surface.vtp", case_dir / "centerlines.vtp"
-    if not surface_path.exists() and not centerline_path.exists():
+    geometry = case.geometry
+    if not geometry and not (case.dir / "surface.vtp").exists():
         section.note = "The centerline and surface stages have not run."
         return section
-    centerlines = pv.read(centerline_path) if centerline_path.exists() else None
-    if surface_path.exists():
-        surface = pv.read(surface_path)
-        section.figures.append(("Lumen surface: wall and labelled caps (CellEntityIds), centerlines in black",
-                                figures.surface_view(surface, centerlines)))
+    branch_rows = [(b["name"], f"{b['length_mm']:.1f}", f"{2 * b['mean_radius_mm']:.2f}",
+                    f"{2 * b['min_radius_mm']:.2f}", f"{2 * b['max_radius_mm']:.2f}", f"{b['tortuosity']:.3f}",
+                    f"{b['max_bend_deg']:.1f}") for b in geometry.get("branches", [])]
+    section.tables.append(Table("Branches", branch_rows, ["branch", "length (mm)", "mean diameter (mm)",
+                                                          "min diameter (mm)", "max diameter (mm)", "tortuosity",
+                                                          "largest bend (°)"]))
+    grade_rows = [(g["branch"], f"{100 * g['nascet']:.1f}", f"{100 * g['ecst']:.1f}",
+                   f"{100 * g['area_reduction']:.1f}", f"{g['min_diameter_mm']:.2f}", f"{g['distal_diameter_mm']:.2f}",
+                   f"{g['local_diameter_mm']:.2f}", f"{g['arclength_from_bifurcation_mm']:.1f}")
+                  for g in geometry.get("stenoses", [])]
+    section.tables.append(Table("Narrowest section of each branch", grade_rows,
+                                ["branch", "NASCET (%)", "ECST (%)", "area reduction (%)", "minimal diameter (mm)",
+                                 "distal diameter (mm)", "local diameter (mm)", "from the bifurcation (mm)"]))
+    caps = geometry.get("caps") or case.surface_quality.get("caps") or []
+    section.tables.append(Table("Caps (CellEntityIds: wall 1, inlet 2, outlets 3, 4, ...)",
+                                [(c["id"], c.get("name", ""), f"{c['area']:.2f}", f"{c['equivalent_radius']:.2f}")
+                                 for c in caps], ["id", "branch", "area (mm²)", "equivalent radius (mm)"]))
+    skip = ("stenosis", "stenoses", "branches", "caps", "branch_names", "centerlines_file")
+    section.tables.append(Table("Centerline record", flatten({k: v for k, v in geometry.items() if k not in skip})))
+    if (case.dir / "surface.vtp").exists():
         section.figures.append(("Smallest angle of each surface triangle",
-                                figures.histogram({"surface": _triangle_min_angles(surface)}, "degrees")))
-    if "stenosis" in geometry:
-        section.tables.append(("Stenosis", flatten(geometry["stenosis"])))
-    section.tables.append(("Geometry", flatten({k: v for k, v in geometry.items() if k != "stenosis"})))
-    section.tables.append(("Surface quality", flatten(_read_json(case_dir / "surface_quality.json"))))
+                                figures.histogram({"surface": _triangle_min_angles(pv.read(case.dir / "surface.vtp"))},
+                                                  "degrees")))
+    section.tables.append(checks_table(quality_checks({}, case.surface_quality, {}, {})))
+    section.tables.append(Table("Surface record", flatten({k: v for k, v in case.surface_quality.items()
+                                                           if k != "caps"})))
     return section
 
 
-def mesh_section(case_dir: Path) -> Section:
+def mesh_section(case: Case) -> Section:
     """A cut through the volume mesh, a close-up of the wall layers, and the quality figures."""
     import pyvista as pv
 
     section = Section("Volume mesh")
-    path = case_dir / "mesh.vtu"
+    path = case.dir / "mesh.vtu"
     if not path.exists():
         section.note = "The mesh stage has not run."
         return section
@@ -137,41 +546,39 @@ def mesh_section(case_dir: Path) -> Section:
     section.figures.append(("Tetrahedra behind a plane through the mesh centre (layer and core regions)",
                             figures.mesh_cut_view(mesh)))
     section.figures.append(("Close-up of the wall layers", figures.mesh_cut_view(mesh, zoom=4.0)))
-    section.tables.append(("Mesh quality", flatten(_read_json(case_dir / "mesh_quality.json"))))
+    section.tables.append(checks_table(quality_checks({}, {}, case.mesh_quality, {})))
+    section.tables.append(Table("Mesh record", flatten(case.mesh_quality)))
     return section
 
 
-def flow_section(case_dir: Path) -> Section:
-    """Wall shear stress indices on the wall and the solver summary."""
-    import pyvista as pv
-
+def flow_section(case: Case) -> Section:
+    """The index statistics and the solver record."""
     section = Section("Flow and wall shear stress")
-    folder = case_dir / "flow"
-    if not (folder / "summary.json").exists():
+    summary = case.flow
+    if not summary:
         section.note = "The flow stage has not run."
         return section
-    indices_path = folder / "indices.vtp"
-    if indices_path.exists():
-        wall = pv.read(indices_path)
-        for name, unit in (("TAWSS", "Pa"), ("OSI", ""), ("RRT", "1/Pa")):
-            if name in wall.array_names:
-                values = np.asarray(wall[name])
-                clim = (0.0, float(np.percentile(values, 98)) or 1.0) if name != "OSI" else (0.0, 0.5)
-                section.figures.append((f"{name} {unit}".strip(),
-                                        figures.surface_view(wall, scalars=name, cmap="jet", clim=clim,
-                                                             title=f"{name} {unit}".strip())))
-    summary = _read_json(folder / "summary.json")
-    section.tables.append(("Solver summary", flatten(summary)))
+    section.tables.append(checks_table(quality_checks({}, {}, {}, summary)))
+    units = {"TAWSS": "Pa", "OSI": "-", "RRT": "1/Pa", "ECAP": "1/Pa", "transWSS": "Pa", "TWSSG": "Pa/s"}
+    section.tables.append(Table("Wall indices over the wall nodes", [
+        (f"{name} ({units.get(name, '')})", f"{v['min']:.3g}", f"{v['mean']:.3g}", f"{v['max']:.3g}")
+        for name, v in summary.get("indices", {}).items()], ["index", "min", "mean", "max"]))
+    record = {k: v for k, v in summary.items() if k != "indices"}
+    record["mass_balance"] = {k: v for k, v in summary.get("mass_balance", {}).items() if k != "outlets"}
+    section.tables.append(Table("Solver record", flatten(record)))
     return section
 
 
-def parameters_section(record: dict) -> Section:
+def parameters_section(case: Case) -> Section:
     """Stage timings and versions from ``case.json``."""
     section = Section("Run record")
-    stages = {name: {"seconds": s.get("seconds"), "finished": s.get("finished")}
-              for name, s in record.get("stages", {}).items()}
-    section.tables.append(("Stages", flatten(stages)))
-    section.tables.append(("Versions", flatten(record.get("versions", {}))))
+    if not case.record:
+        section.note = "No case.json: the case was built by the per-stage commands, which record no timings."
+        return section
+    section.tables.append(Table("Stages", [(name, _value(s.get("seconds")), s.get("finished", ""))
+                                           for name, s in case.record.get("stages", {}).items()],
+                                ["stage", "seconds (s)", "finished (UTC)"]))
+    section.tables.append(Table("Versions", flatten(case.record.get("versions", {}))))
     return section
 
 
@@ -179,29 +586,37 @@ def _section_html(section: Section) -> str:
     parts = [f"<section><h2>{html.escape(section.title)}</h2>"]
     if section.note:
         parts.append(f'<p class="missing">{html.escape(section.note)}</p>')
-    for caption, png in section.figures:
-        data = base64.b64encode(png).decode()
-        parts.append(f'<figure><img alt="{html.escape(caption)}" src="data:image/png;base64,{data}">'
-                     f"<figcaption>{html.escape(caption)}</figcaption></figure>")
-    for caption, rows in section.tables:
-        if rows:
-            body = "".join(f"<tr><th>{html.escape(str(k))}</th><td>{html.escape(str(v))}</td></tr>" for k, v in rows)
-            parts.append(f"<table><caption>{html.escape(caption)}</caption>{body}</table>")
+    parts += [_figure(caption, png) for caption, png in section.figures]
+    parts += [_table_html(table) for table in section.tables]
     parts.append("</section>")
     return "\n".join(parts)
 
 
+def _guarded(build, *args) -> str:
+    """The HTML of one part of the report, or a note naming the error that stopped it."""
+    try:
+        result = build(*args)
+    except Exception as exc:  # noqa: BLE001 - a broken record must not stop the rest of the report
+        return f'<p class="missing">This part could not be built: {html.escape(type(exc).__name__)}: ' \
+               f"{html.escape(str(exc))}</p>"
+    return result if isinstance(result, str) else _section_html(result)
+
+
 def build_report(case_dir: str | Path) -> Path:
-    """Write ``CASE_DIR/report.html`` from whatever the stages have produced; returns its path."""
+    """Write ``CASE_DIR/report.html`` from whatever the stages have produced; returns its path.
+
+    Works on any case folder, whether ``carotid run`` or the per-stage commands built it: each part
+    reads only the files it shows, and a part whose files are missing or unreadable says so.
+    """
     case_dir = Path(case_dir)
-    record = _read_json(case_dir / "case.json")
-    sections = [segmentation_section(case_dir, record), geometry_section(case_dir), mesh_section(case_dir),
-                flow_section(case_dir), parameters_section(record)]
+    case = Case.read(case_dir)
     stamp = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    details = [_guarded(build, case) for build in (segmentation_section, geometry_section, mesh_section,
+                                                   flow_section, parameters_section)]
     page = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>carotid report: {html.escape(case_dir.name)}"
-            f"</title><style>{STYLE}</style></head><body><h1>carotid report: {html.escape(case_dir.name)}</h1>"
-            f"<p>carotid {__version__}, written {stamp}. Geometry in mm (image LPS frame); flow in SI units.</p>"
-            + "\n".join(_section_html(s) for s in sections) + "</body></html>")
+            f"</title><style>{STYLE}</style></head><body><h1>carotid report: {html.escape(case_dir.name)} "
+            f"<small>carotid {__version__}, written {stamp}; geometry in mm (image LPS frame), flow in SI units"
+            f"</small></h1>{_guarded(summary_html, case)}<h2>Details</h2>" + "\n".join(details) + "</body></html>")
     path = case_dir / "report.html"
     with atomic_path(path) as tmp:
         tmp.write_text(page)

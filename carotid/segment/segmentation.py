@@ -620,19 +620,30 @@ class SegmentStageParameters(SegmentParameters):
         return self
 
 
-def run_stage(case_dir: Path, params: dict, inputs: list[Path]) -> None:
-    """The ``segment`` stage of ``carotid run``: read ``inputs[0]``, segment it, write ``CASE_DIR/segmentation``."""
+def run_stage(case_dir: Path, params: dict, inputs: list[Path], progress=None) -> None:
+    """The ``segment`` stage of ``carotid run``: read ``inputs[0]``, segment it, write ``CASE_DIR/segmentation``.
+
+    ``progress`` (a :class:`carotid.pipeline.StageProgress`) receives the level-set iterations.
+    """
     from carotid.io import read_image
 
     params = SegmentStageParameters(**params).validate()
     fields = {k: v for k, v in asdict(params).items() if k not in ("seeds_mm", "stops_mm")}
+    report = None if progress is None else (
+        lambda iterations, changed, front: progress(iterations, None, iterations=iterations, front=front))
     result = segment(read_image(inputs[0]), seeds_xyz=params.seeds_mm or None, params=SegmentParameters(**fields),
-                     stops_xyz=params.stops_mm or None)
-    write_segmentation(result, case_dir)
+                     stops_xyz=params.stops_mm or None, progress=report)
+    write_segmentation(result, case_dir, inputs[0])
 
 
-def write_segmentation(result: Segmentation, case_dir: str | Path) -> Path:
-    """Write ``levelset.nii.gz``, ``mask.nii.gz``, ``report.json`` (and ``wall_mask.nii.gz``) atomically."""
+def write_segmentation(result: Segmentation, case_dir: str | Path, image_path: str | Path | None = None) -> Path:
+    """Write ``levelset.nii.gz``, ``mask.nii.gz``, ``report.json`` (and ``wall_mask.nii.gz``) atomically.
+
+    ``image_path``, the segmented image's file or DICOM folder, is recorded as ``report.json``
+    ``image.path`` (absolute), so that a case built stage by stage still finds its scan.
+    """
+    if image_path is not None:
+        result.report["image"]["path"] = str(Path(image_path).resolve())
     out = Path(case_dir) / "segmentation"
     with atomic_dir(out) as tmp:
         write_image(result.levelset, tmp / "levelset.nii.gz")
