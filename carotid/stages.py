@@ -150,12 +150,17 @@ class FlowStageParameters:
         Steps between outputs of the time series.
     checkpoint_every : int
         Steps between checkpoints.
+    flow_ml_s : float
+        Constant inflow, mL/s, for a steady case (0: the waveform); each "cycle" is then 1 s.
     rho : float
         Blood density, kg/m^3.
     mu : float
         Blood dynamic viscosity, Pa s.
     force : bool
         Run even when the estimated step count or output size exceeds the sane bounds.
+    periodic_tol : float
+        Stop at the first whole cycle whose TAWSS changed by less than this area-weighted L2 relative change
+        from the previous cycle's, ``cycles`` being the maximum (0: run exactly ``cycles``).
     """
 
     cycles: float = 3.0
@@ -167,24 +172,28 @@ class FlowStageParameters:
     pressure: str = "auto"
     output_every: int = 50
     checkpoint_every: int = 500
+    flow_ml_s: float = 0.0
     rho: float = 1060.0
     mu: float = 3.5e-3
     force: bool = False
+    periodic_tol: float = 0.0
 
     # Blood and the analogue fluids of flow phantoms (water to glycerol mixtures).
     RANGES = {"cycles": (1e-3, 100.0), "dt": (0.0, 0.01), "output_every": (1, 10**7), "checkpoint_every": (1, 10**7),
-              "rho": (500.0, 2000.0), "mu": (1e-4, 0.1)}
+              "flow_ml_s": (0.0, 1000.0), "rho": (500.0, 2000.0), "mu": (1e-4, 0.1), "periodic_tol": (0.0, 0.5)}
 
     def flow_parameters(self):
         """The solver's ``FlowParameters``, validated."""
         from carotid.flow.simulate import FlowParameters
 
-        waveform = None
-        if self.waveform:
-            from carotid.flow.waveform import read_waveform_csv
+        from carotid.flow.waveform import ML, constant_waveform, read_waveform_csv
 
-            waveform = read_waveform_csv(self.waveform)
-        fields = {**asdict(self), "dt": self.dt or None, "waveform": waveform, "split": tuple(self.split) or None}
+        if self.waveform and self.flow_ml_s:
+            raise CarotidError("bad simulate parameter: give a waveform file or a constant flow_ml_s, not both")
+        waveform = (read_waveform_csv(self.waveform) if self.waveform else
+                    constant_waveform(self.flow_ml_s * ML) if self.flow_ml_s else None)
+        fields = {k: v for k, v in asdict(self).items() if k != "flow_ml_s"}
+        fields.update(dt=self.dt or None, waveform=waveform, split=tuple(self.split) or None)
         return FlowParameters(**fields).validate()
 
     def validate(self) -> "FlowStageParameters":

@@ -164,3 +164,21 @@ def test_manifest_rows_are_checked_with_their_line(tmp_path, capsys, monkeypatch
     manifest.write_text("case_id,image\na,a.nii.gz\n")
     (case,) = read_manifest(manifest, "run.toml")
     assert case.overrides["mesh"]["layers"] == 3 and case.image == tmp_path / "cohort" / "a.nii.gz"
+
+
+def test_fluid_properties_and_a_constant_flow_reach_the_solver(tmp_path, capsys):
+    from carotid.config import Config
+    from carotid.flow.verify import TubeSpec, tube_mesh
+
+    tube_mesh(TubeSpec(n_square=4, n_core=3, n_layers=4, first_layer=0.08, growth=1.4, n_axial=4,
+                       length=4.0)).to_pyvista().save(tmp_path / "mesh.vtu")
+    code, _, err = run_and_capture(capsys, ["simulate", tmp_path, "--flow", "4.5", "--density", "1000",
+                                            "--viscosity", "7e-3", "--cycles", "0.004"])
+    assert code == 0, err
+    summary = json.loads((tmp_path / "flow" / "summary.json").read_text())
+    assert summary["settings"]["rho"] == 1000 and summary["settings"]["mu"] == 7e-3
+    assert summary["mass_balance"]["inflow_mean_m3s"] == pytest.approx(4.5e-6, rel=1e-9)
+    code, _, err = run_and_capture(capsys, ["simulate", tmp_path, "--viscosity", "5"])
+    assert code == 2 and "mu = 5.0 is outside" in err
+    assert Config({"simulate": {"flow_ml_s": 4.5}}).parameters("simulate").flow_parameters().waveform.mean_m3s == \
+        pytest.approx(4.5e-6)

@@ -56,35 +56,43 @@ def test_wall_distance_is_exact():
     assert np.all(np.abs(d - (SMALL.radius * 1e-3 - r)) <= sagitta + 1e-12)
 
 
-def test_steady_poiseuille_meets_the_issue_limits():
-    # 64-gon section, first layer 30 um; steady state from the section's profile carried along the tube.
+@pytest.fixture(scope="module")
+def explicit_poiseuille():
+    return poiseuille(POISEUILLE.refined(2))
+
+
+def test_steady_poiseuille_meets_the_issue_limits(explicit_poiseuille):
+    # 64-gon section, first layer 30 um; from rest to the steady state.
     # Before the inlet flux and the stabilisation were made consistent this run drifted to -5% mean / 13% max.
-    res = poiseuille(POISEUILLE.refined(2))
+    res = explicit_poiseuille
     assert res["residual"] < 1e-3
     assert abs(res["centreline_error"]) <= 0.01
     assert abs(res["wss_mean_error"]) <= 0.01
     assert res["wss_max_error"] <= 0.03
-    # mass: consistent outflow = inflow; and the P1 flux int u.n itself within 0.1 % of the inflow
+    assert abs(res["pressure_gradient_error"]) <= 0.01  # dp/dz = -8 mu Q / (pi R^4)
+    # mass: consistent outflow = inflow (imposed); and the P1 flux int u.n itself within 0.1 % of the inflow
     assert abs(res["imbalance"]) <= 1e-6
     assert abs(res["imbalance_p1"]) <= 1e-3
 
 
-def test_implicit_viscosity_meets_the_same_limits_with_a_convective_step():
+def test_implicit_viscosity_meets_the_same_limits_with_a_convective_step(explicit_poiseuille):
     # the backward-Euler viscous option reaches the same steady state (no O(dt) defect) in fewer steps
     res = poiseuille(POISEUILLE.refined(2), viscous="implicit")
     assert abs(res["centreline_error"]) <= 0.01 and abs(res["wss_mean_error"]) <= 0.01
     assert res["wss_max_error"] <= 0.03 and abs(res["imbalance"]) <= 1e-6
-    assert res["steps"] < 0.5 * poiseuille(POISEUILLE.refined(2))["steps"]
+    assert abs(res["pressure_gradient_error"]) <= 0.01
+    assert res["steps"] < 0.5 * explicit_poiseuille["steps"]
 
 
 def test_implicit_step_is_not_bounded_by_the_thinnest_layer():
     from carotid.flow.cbs import CBSSolver
-    from carotid.flow.verify import NU, developed_start, steady_waveform
+    from carotid.flow.verify import NU, developed_start
+    from carotid.flow.waveform import constant_waveform
     from carotid.flow.womersley import inlet_profile
 
     mesh = tube_mesh(TubeSpec(n_layers=8, first_layer=0.005, growth=1.6))  # a patient-like 5 um first layer
     nodes, pts, tris = mesh.face_patch(2)
-    profile = inlet_profile(pts, tris, mesh.face_normal(2), steady_waveform(6e-6), NU, 0)
+    profile = inlet_profile(pts, tris, mesh.face_normal(2), constant_waveform(6e-6), NU, 0)
     steps = {}
     for viscous in ("explicit", "implicit"):
         solver = CBSSolver(mesh, profile.velocity, NU, viscous=viscous)
@@ -99,12 +107,13 @@ def test_pressure_solvers_agree_and_the_implicit_matrix_bounds_every_step():
     import scipy.sparse as sp
 
     from carotid.flow.cbs import CBSSolver, PressureSolver
-    from carotid.flow.verify import NU, developed_start, steady_waveform
+    from carotid.flow.verify import NU, developed_start
+    from carotid.flow.waveform import constant_waveform
     from carotid.flow.womersley import inlet_profile
 
     mesh = tube_mesh(TubeSpec(n_layers=4, first_layer=0.02))
     nodes, pts, tris = mesh.face_patch(2)
-    profile = inlet_profile(pts, tris, mesh.face_normal(2), steady_waveform(6e-6), NU, 0)
+    profile = inlet_profile(pts, tris, mesh.face_normal(2), constant_waveform(6e-6), NU, 0)
     k = CBSSolver(mesh, profile.velocity, NU).pressure.matrix
     b = np.random.default_rng(0).standard_normal(k.shape[0])
     solvers = {m: PressureSolver(k, m, rtol=1e-12) for m in ("cholesky", "amg", "lu", "jacobi")}
@@ -128,13 +137,15 @@ def test_pressure_solvers_agree_and_the_implicit_matrix_bounds_every_step():
     assert tau.min() < solver.tau.max()  # core elements keep their own, longer tau_e
 
 
-@pytest.mark.parametrize("viscous", ["explicit", "implicit"])
-def test_womersley_wss_over_a_cycle(viscous):
-    # alpha 4.7, the built-in carotid waveform, generalised inlet profile: WSS within 3 % of the analytic
-    # peak at 24 times over one cycle (issue limit); measured 1.2 % (explicit) and 1.3 % (implicit)
-    res = womersley(cycles=1.0, samples=24, viscous=viscous)
+def test_womersley_from_rest_in_a_long_tube():
+    # alpha 4.7, the built-in carotid waveform, generalised inlet profile, five diameters, from rest 0.4 s
+    # before systole; over the systolic quarter cycle on the section 2 D from both ends (measured: velocity
+    # 1.0 %, WSS 1.5 %, dp/dz 2.5 % of the peak).  The explicit scheme is checked by `carotid verify` (its
+    # step is bound by the wall layer: three minutes for this run)
+    res = womersley(window=0.25, samples=8, settle=0.4, viscous="implicit")
     assert 4.0 < res["alpha"] < 5.0
-    assert res["max_error_of_peak"] <= 0.03
+    assert res["velocity_error_of_peak"] <= 0.03 and res["max_error_of_peak"] <= 0.03
+    assert res["pressure_gradient_error_of_peak"] <= 0.05
 
 
 def test_poiseuille_error_converges():
@@ -145,12 +156,13 @@ def test_poiseuille_error_converges():
 
 def test_mass_split_is_imposed_every_step():
     from carotid.flow.cbs import CBSSolver
-    from carotid.flow.verify import NU, developed_start, steady_waveform
+    from carotid.flow.verify import NU, developed_start
+    from carotid.flow.waveform import constant_waveform
     from carotid.flow.womersley import inlet_profile
 
     mesh = tube_mesh(SMALL, split_outlet=True)
     nodes, pts, tris = mesh.face_patch(2)
-    profile = inlet_profile(pts, tris, mesh.face_normal(2), steady_waveform(6e-6), NU, 0)
+    profile = inlet_profile(pts, tris, mesh.face_normal(2), constant_waveform(6e-6), NU, 0)
     solver = CBSSolver(mesh, profile.velocity, NU, split=(0.7, 0.3))
     solver.reset(developed_start(mesh, profile))
     for _ in range(300):
@@ -318,12 +330,13 @@ def test_vtu_round_trip(tmp_path):
 def test_spalart_allmaras_stays_small_in_laminar_pipe(viscous):
     from carotid.flow.cbs import CBSSolver
     from carotid.flow.turbulence import SpalartAllmaras
-    from carotid.flow.verify import NU, developed_start, steady_waveform
+    from carotid.flow.verify import NU, developed_start
+    from carotid.flow.waveform import constant_waveform
     from carotid.flow.womersley import inlet_profile
 
     mesh = tube_mesh(SMALL)
     nodes, pts, tris = mesh.face_patch(2)
-    profile = inlet_profile(pts, tris, mesh.face_normal(2), steady_waveform(6e-6), NU, 0)
+    profile = inlet_profile(pts, tris, mesh.face_normal(2), constant_waveform(6e-6), NU, 0)
     sa = SpalartAllmaras(mesh, NU)
     solver = CBSSolver(mesh, profile.velocity, NU, turbulence=sa, viscous=viscous)
     solver.reset(developed_start(mesh, profile))

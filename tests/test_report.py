@@ -146,7 +146,7 @@ def test_surface_regions_are_named_after_the_branches(demo_run):
     import json
 
     from carotid.centerline import read_centerlines
-    from carotid.report.html import branch_regions
+    from carotid.centerline.model import branch_regions
 
     proc, out = demo_run
     assert proc.returncode == 0, proc.stderr

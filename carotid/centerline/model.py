@@ -88,3 +88,24 @@ class Centerlines:
             end = 0 if b.name == "CCA" else -1
             out.append((b.name, b.points[end].copy(), b.end_tangent(end), float(b.radii[end])))
         return out
+
+
+def branch_regions(points: np.ndarray, branches) -> np.ndarray:
+    """Index of the branch whose axis passes nearest to each point.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+        Wall points, mm.
+    branches : list of Branch
+        Centerline branches.
+
+    Returns
+    -------
+    ndarray of int, shape (n,)
+    """
+    from scipy.spatial import cKDTree
+
+    axis = np.concatenate([b.points for b in branches])
+    owner = np.repeat(np.arange(len(branches)), [len(b.points) for b in branches])
+    return owner[cKDTree(axis).query(points)[1]]

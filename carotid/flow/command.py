@@ -30,7 +30,9 @@ def cmd_simulate(args) -> int:
     stage = FlowStageParameters(cycles=args.cycles, dt=args.dt or 0.0, waveform=str(args.waveform or ""),
                                 split=list(_split(args.split) or []), turbulence=args.turbulence,
                                 viscous=args.viscous, pressure=args.pressure, output_every=args.output_every,
-                                checkpoint_every=args.checkpoint_every, force=args.force)
+                                checkpoint_every=args.checkpoint_every, force=args.force,
+                                flow_ml_s=args.flow or 0.0, rho=args.density, mu=args.viscosity,
+                                periodic_tol=args.periodic_tol)
     params = stage.validate().flow_parameters()
     mesh = FlowMesh.from_vtu(case / "mesh.vtu")
     bar = tqdm(total=1.0, unit="cycle", file=sys.stderr, disable=None, dynamic_ncols=True,
@@ -43,6 +45,8 @@ def cmd_simulate(args) -> int:
         if info["step"] % 20 == 0:
             bar.refresh()
 
+    if args.convergence:
+        return _convergence(case, params, args.refinement, bar, progress)
     try:
         summary = simulate(mesh, case, params, resume=args.resume, progress=progress,
                            log=lambda line: bar.write(f"simulate: {line}", file=sys.stderr))
@@ -50,8 +54,36 @@ def cmd_simulate(args) -> int:
         bar.close()
     mb = summary["mass_balance"]
     print(f"flow written to {case / 'flow'}: {summary['steps']} steps, {summary['seconds']:.0f} s, "
-          f"max CFL {summary['cfl_max']:.2f}, max mass imbalance {100 * mb['imbalance_max_abs']:.3f}%, "
+          f"max CFL {summary['cfl_max']:.2f}, max mass imbalance (P1 flux) {100 * mb['imbalance_p1_max_abs']:.3f}%, "
           f"pressure drop {summary['pressure_drop_pa']['cycle_mean']:.1f} Pa")
+    changes = [f"{e['relative_change']:.2%}" for e in summary["periodicity"] if e["relative_change"] is not None]
+    if changes:
+        periodic = summary["periodic"]
+        print(f"TAWSS change from the previous cycle: {', '.join(changes)} ({periodic['status']}"
+              + (f", tolerance {periodic['tolerance']:.2%})" if periodic["tolerance"] else ")"))
+    if summary["partial"]:
+        print(f"warning: {summary['indices_note']}", file=sys.stderr)
+    return 0
+
+
+def _convergence(case: Path, params, refinement: float, bar, progress) -> int:
+    """``--convergence``: the three-level study of :func:`carotid.flow.convergence.run_convergence`, printed."""
+    from carotid.flow.convergence import run_convergence
+
+    try:
+        result = run_convergence(case, params, refinement, log=lambda line: bar.write(f"convergence: {line}",
+                                                                                       file=sys.stderr),
+                                 progress=progress)
+    finally:
+        bar.close()
+    sizes = ", ".join(f"{level['h_mm']:.3f}" for level in result["levels"])
+    print(f"grid convergence written to {case / 'flow' / 'convergence.json'} (h = {sizes} mm); mean TAWSS per "
+          "branch:")
+    for name, row in result["branches"]["TAWSS"].items():
+        gci = "n/a" if row["gci_fine21"] is None else f"{100 * row['gci_fine21']:.2f}%"
+        ext = "n/a" if row["phi_ext21"] is None else f"{row['phi_ext21']:.4g}"
+        print(f"  {name}: {row['phi_fine_to_coarse'][0]:.4g} Pa, extrapolated {ext} Pa, GCI {gci}, "
+              f"p = {row['p'] if row['p'] is None else round(row['p'], 2)} ({row['status']})")
     return 0
 
 
@@ -68,7 +100,16 @@ def register(subparsers) -> None:
     p.add_argument("case_dir", type=Path, metavar="CASE_DIR")
     p.add_argument("--cycles", type=float, default=3.0, help="cardiac cycles (default 3)")
     p.add_argument("--dt", type=float, help="fixed time step in s (default: adaptive)")
-    p.add_argument("--waveform", type=Path, metavar="FILE", help="inlet flow CSV: time s, flow mL/s")
+    p.add_argument("--periodic-tol", type=float, default=0.0, metavar="TOL",
+                   help="run whole cycles until the TAWSS changes by less than TOL (area-weighted L2, relative) "
+                        "from the previous cycle, --cycles being the maximum (default 0: exactly --cycles)")
+    inflow = p.add_mutually_exclusive_group()
+    inflow.add_argument("--waveform", type=Path, metavar="FILE", help="inlet flow CSV: time s, flow mL/s")
+    inflow.add_argument("--flow", type=float, metavar="ML_S",
+                        help="constant inflow in mL/s, for a steady case (each cycle is then 1 s)")
+    p.add_argument("--density", type=float, default=1060.0, metavar="KG_M3", help="fluid density (default 1060)")
+    p.add_argument("--viscosity", type=float, default=3.5e-3, metavar="PA_S",
+                   help="dynamic viscosity (default 3.5e-3)")
     p.add_argument("--split", nargs="+", metavar="RATIO",
                    help="outflow fraction per outlet in label order, e.g. 0.65:0.35 (default: Murray's law)")
     p.add_argument("--turbulence", choices=("none", "sa"), default="none", help="Spalart-Allmaras or none")
@@ -80,6 +121,11 @@ def register(subparsers) -> None:
     p.add_argument("--output-every", type=int, default=50, metavar="K", help="steps between outputs (50)")
     p.add_argument("--checkpoint-every", type=int, default=500, metavar="M", help="steps between checkpoints")
     p.add_argument("--resume", action="store_true", help="continue from CASE_DIR/flow/checkpoint.npz")
+    p.add_argument("--convergence", action="store_true",
+                   help="solution verification: run the case mesh and two coarser ones rebuilt from surface.vtp, "
+                        "and write the GCI of TAWSS/OSI/RRT per branch and per node to flow/convergence.json/.vtp")
+    p.add_argument("--refinement", type=float, default=1.5, metavar="R",
+                   help="core-size ratio between consecutive --convergence levels (default 1.5)")
     p.add_argument("--force", action="store_true",
                    help="run even when the estimated steps (over 5 million) or output exceed the sane bounds")
     p.set_defaults(func=cmd_simulate)

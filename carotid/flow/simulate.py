@@ -31,6 +31,11 @@ from carotid.flow.wss import WallShear
 from carotid.io import write_json
 
 
+# Version of what a checkpoint stores (its output records carry per-outlet P1 fluxes from version 2): a
+# checkpoint of another version does not match the fingerprint, so a run starts afresh instead of resuming.
+CHECKPOINT_FORMAT = 2
+
+
 @dataclass
 class FlowParameters:
     """Settings of one simulation (SI units).
@@ -63,6 +68,10 @@ class FlowParameters:
         Pressure solver, see :class:`carotid.flow.cbs.PressureSolver`.
     force : bool
         Run even when :func:`run_estimate` exceeds ``MAX_STEPS`` or the free disk space.
+    periodic_tol : float
+        Stop at the end of the first whole cycle whose TAWSS differs from the previous cycle's by less than
+        this area-weighted L2 relative change (:class:`CyclePeriodicity`), ``cycles`` being then the maximum;
+        0: run exactly ``cycles``.
     """
 
     cycles: float = 3.0
@@ -80,6 +89,7 @@ class FlowParameters:
     max_speed: float = 20.0
     pressure: str = "auto"
     force: bool = False
+    periodic_tol: float = 0.0
     extra: dict = field(default_factory=dict)
 
     def validate(self) -> FlowParameters:
@@ -95,16 +105,20 @@ class FlowParameters:
             raise CarotidError(f"--pressure must be one of {', '.join(PressureSolver.METHODS)} (got {self.pressure!r})")
         if self.output_every < 1 or self.checkpoint_every < 1:
             raise CarotidError("--output-every and the checkpoint interval must be at least 1 step")
+        if not (0 <= self.periodic_tol < 1):
+            raise CarotidError(f"--periodic-tol must be in [0, 1) (got {self.periodic_tol})")
         if not (0 < self.safety <= 1):
             raise CarotidError(f"the time-step safety factor must be in (0, 1] (got {self.safety})")
         return self
 
     def fingerprint(self, waveform, mesh: FlowMesh) -> str:
-        """Hash of everything that changes the solution: these settings (not ``cycles`` nor output settings),
-        the waveform and the mesh."""
+        """Hash of everything that changes the solution: these settings (not ``cycles``, ``periodic_tol`` nor
+        output settings), the waveform and the mesh."""
         keys = {k: v for k, v in asdict(self).items()
-                if k not in ("cycles", "output_every", "checkpoint_every", "waveform", "extra", "force")}
+                if k not in ("cycles", "periodic_tol", "output_every", "checkpoint_every", "waveform", "extra",
+                             "force")}
         keys["waveform"] = np.round(np.r_[waveform.period_s, waveform.times_s, waveform.flow_m3s], 15).tolist()
+        keys["checkpoint_format"] = CHECKPOINT_FORMAT
         digest = hashlib.sha256(json.dumps(keys, sort_keys=True, default=str).encode())
         for array in (mesh.points, mesh.tets, mesh.faces, mesh.labels):
             digest.update(np.ascontiguousarray(array).tobytes())
@@ -194,7 +208,7 @@ def _diagnostics(solver: CBSSolver, info, rho: float) -> dict:
     p_out = [float(np.linalg.norm(wj, axis=1) @ p[nj] / np.linalg.norm(wj, axis=1).sum())
              for nj, wj in solver.out_flux]
     return {"dt": info.dt, "cfl": info.cfl, "inflow": info.inflow, "outflow": info.outflow.tolist(),
-            "imbalance": info.imbalance, "imbalance_p1": info.imbalance_p1,
+            "outflow_p1": info.outflow_p1.tolist(), "imbalance": info.imbalance, "imbalance_p1": info.imbalance_p1,
             "dp": p_in - float(np.average(p_out, weights=solver.outlet_areas))}
 
 
@@ -259,15 +273,17 @@ def simulate(mesh, case_dir, params: FlowParameters | None = None, resume: bool 
         writer.truncate(meta["records"])
     else:
         _output(writer, solver, wall, params, {"dt": 0.0, "cfl": 0.0, "inflow": solver.inflow(solver.u),
-                                               "outflow": solver.outflows(solver.u).tolist(), "imbalance": 0.0,
+                                               "outflow": solver.outflows(solver.u).tolist(),
+                                               "outflow_p1": solver.outflows(solver.u).tolist(), "imbalance": 0.0,
                                                "imbalance_p1": 0.0,
                                                "dp": 0.0})
         _checkpoint(ckpt, solver, writer, fp, seconds)
     start = _time.perf_counter() - seconds
+    periodicity = CyclePeriodicity(writer, mesh, wall, period)
     with _DeferredInterrupt() as interrupt:
-        _run_steps(solver, writer, wall, params, ckpt, fp, start, t_end, period, interrupt, progress)
+        _run_steps(solver, writer, wall, params, ckpt, fp, start, t_end, period, interrupt, progress, periodicity)
     seconds = _time.perf_counter() - start
-    summary = _finish(flow_dir, mesh, solver, wall, writer, params, waveform, seconds)
+    summary = _finish(flow_dir, mesh, solver, wall, writer, params, waveform, seconds, periodicity)
     write_json(summary, flow_dir / "summary.json")
     return summary
 
@@ -300,12 +316,17 @@ class _DeferredInterrupt:
 
 def _run_steps(solver: CBSSolver, writer: FlowWriter, wall: WallShear, params: FlowParameters, ckpt: Path, fp: str,
                start: float, t_end: float, period: float, interrupt: _DeferredInterrupt,
-               progress: Callable[[dict], None] | None) -> None:
+               progress: Callable[[dict], None] | None, periodicity: CyclePeriodicity) -> None:
     """Step to ``t_end`` (s), writing outputs and checkpoints; KeyboardInterrupt after the checkpoint of an
-    interrupted step."""
+    interrupted step.
+
+    Every cycle end k T is stepped onto exactly and written, and closes the cycle's entry of ``periodicity``;
+    with ``params.periodic_tol`` > 0 the run stops at the first cycle end where it is met."""
     mesh = solver.mesh
-    while solver.t < t_end * (1 - 1e-12):
-        info = solver.step(max_dt=t_end - solver.t)
+    periodicity.update(solver.t)
+    while solver.t < t_end * (1 - 1e-12) and not periodicity.reached(params.periodic_tol):
+        boundary = (np.floor(solver.t / period * (1 + 1e-12)) + 1) * period
+        info = solver.step(max_dt=min(t_end, boundary) - solver.t)
         ok, node = solver.check_finite(params.max_speed)
         if not ok:
             speed = float(np.linalg.norm(solver.u[node]))
@@ -313,11 +334,12 @@ def _run_steps(solver: CBSSolver, writer: FlowWriter, wall: WallShear, params: F
             raise CarotidError(f"the flow solution blew up at step {solver.step_count} (t = {solver.t:.5f} s): "
                                f"|u| = {speed:.3g} m/s at {where} mm; the last good checkpoint is kept in {ckpt} "
                                "(try a smaller --dt or a finer mesh)")
-        last = solver.t >= t_end * (1 - 1e-12)
-        diag = None
-        if solver.step_count % params.output_every == 0 or last:
-            diag = _diagnostics(solver, info, params.rho)
-            _output(writer, solver, wall, params, diag)
+        cycle_end = solver.t >= boundary * (1 - 1e-12)
+        if solver.step_count % params.output_every == 0 or cycle_end or solver.t >= t_end * (1 - 1e-12):
+            _output(writer, solver, wall, params, _diagnostics(solver, info, params.rho))
+        if cycle_end:
+            periodicity.update(solver.t)
+        last = solver.t >= t_end * (1 - 1e-12) or periodicity.reached(params.periodic_tol)
         if solver.step_count % params.checkpoint_every == 0 or last:
             _checkpoint(ckpt, solver, writer, fp, _time.perf_counter() - start)
         if progress is not None:
@@ -349,11 +371,79 @@ def _checkpoint(path: Path, solver: CBSSolver, writer: FlowWriter, fp: str, seco
     save_checkpoint(path, solver.state(), {"records": writer.records, "fingerprint": fp, "seconds": seconds})
 
 
-def _finish(flow_dir, mesh, solver, wall, writer, params, waveform, seconds) -> dict:
+class CyclePeriodicity:
+    """TAWSS of each whole cycle of a run and its change from the previous cycle.
+
+    At the end of cycle k (t = k T) the TAWSS of ``[(k - 1) T, k T]`` is computed from the stored wall WSS
+    outputs of that cycle (:func:`carotid.flow.indices.wall_indices`, trapezoidal in time) and compared with
+    cycle k - 1's by
+
+    * the area-weighted L2 relative change ``sqrt(sum_i A_i (T_k - T_{k-1})_i^2 / sum_i A_i T_{k,i}^2)``, the
+      criterion of ``periodic_tol``, and
+    * the relative change of the area-weighted mean TAWSS, ``|mean_k - mean_{k-1}| / mean_k``,
+
+    A_i the wall area of node i (:func:`carotid.flow.indices.node_areas`).  The entries are rebuilt from the
+    outputs, so a resumed run has the same ones.
+
+    Parameters
+    ----------
+    writer : FlowWriter
+        Holds the output records of the run.
+    mesh : FlowMesh
+    wall : WallShear
+    period : float
+        Cycle length T, s.
+    """
+
+    def __init__(self, writer: FlowWriter, mesh: FlowMesh, wall: WallShear, period: float):
+        from carotid.flow.indices import node_areas
+
+        self.writer, self.normals, self.period = writer, wall.node_normals, period
+        self.areas = node_areas(mesh.points[wall.nodes], wall.local_faces)
+        self.entries: list[dict] = []
+        self._tawss = None
+
+    def update(self, t: float) -> None:
+        """Add the entries of the cycles ending at or before ``t`` (s) not yet added."""
+        from carotid.flow.indices import wall_indices
+
+        while (len(self.entries) + 1) * self.period <= t * (1 + 1e-12):
+            k = len(self.entries) + 1
+            times, wss = self.writer.read_wall("WSS", (k - 1) * self.period)
+            keep = times <= k * self.period * (1 + 1e-12)
+            tawss = wall_indices(times[keep], wss[keep], self.normals)["TAWSS"]
+            mean = float(self.areas @ tawss / self.areas.sum())
+            entry = {"cycle": k, "tawss_mean_pa": mean, "relative_change": None, "mean_change": None}
+            if self._tawss is not None:
+                previous = float(self.areas @ self._tawss / self.areas.sum())
+                entry["relative_change"] = float(np.sqrt(self.areas @ (tawss - self._tawss) ** 2 /
+                                                         max(self.areas @ tawss ** 2, 1e-300)))
+                entry["mean_change"] = abs(mean - previous) / max(abs(mean), 1e-300)
+            self.entries.append(entry)
+            self._tawss = tawss
+
+    def reached(self, tol: float) -> bool:
+        """Whether ``tol`` > 0 and the last cycle's TAWSS changed by less than ``tol`` from the one before."""
+        change = self.entries[-1]["relative_change"] if self.entries else None
+        return tol > 0 and change is not None and change < tol
+
+    def summary(self, tol: float) -> dict:
+        """The ``periodic`` part of summary.json: ``status`` "periodic" or "not periodic" (``tol`` > 0), or
+        "not assessed" (``tol`` 0, or under two whole cycles), with the last relative change."""
+        change = self.entries[-1]["relative_change"] if self.entries else None
+        status = ("not assessed" if tol <= 0 or change is None else
+                  "periodic" if change < tol else "not periodic")
+        return {"tolerance": tol, "status": status, "last_relative_change": change,
+                "criterion": "area-weighted L2 relative change of the TAWSS of a whole cycle from the previous "
+                             "cycle's"}
+
+
+def _finish(flow_dir, mesh, solver, wall, writer, params, waveform, seconds, periodicity) -> dict:
     from carotid.flow.indices import wall_indices
 
     period = waveform.period_s
     since = max(solver.t - period, 0.0)
+    fraction = (solver.t - since) / period
     times, wss = writer.read_wall("WSS", since)
     indices = {}
     if len(times) >= 2:
@@ -363,8 +453,9 @@ def _finish(flow_dir, mesh, solver, wall, writer, params, waveform, seconds) -> 
     recs = [r for r in writer.records if r["time"] >= since - 1e-12 and r["step"] > 0]
     diag = [r["diagnostics"] for r in recs]
     inflow = np.array([d["inflow"] for d in diag])
-    outflow = np.array([d["outflow"] for d in diag])
+    outflow = np.array([d["outflow_p1"] for d in diag])  # int u.n of the P1 velocity
     frac = outflow / inflow[:, None]
+    consistent = np.array([d["outflow"] for d in diag])
     labels = mesh.outlet_labels
     mag = np.linalg.norm(wss[-1], axis=1) if len(wss) else np.zeros(1)
     finite = {k: v[np.isfinite(v)] for k, v in indices.items()}
@@ -376,18 +467,32 @@ def _finish(flow_dir, mesh, solver, wall, writer, params, waveform, seconds) -> 
         "cfl_max": max(d["cfl"] for d in diag),
         "mass_balance": {
             "inflow_mean_m3s": float(inflow.mean()),
-            "imbalance_max_abs": float(np.max(np.abs([d["imbalance"] for d in diag]))),
             "imbalance_p1_max_abs": float(np.max(np.abs([d["imbalance_p1"] for d in diag]))),
-            "note": "outflows are the consistent fluxes (continuity residual at the outlet nodes); "
-                    "imbalance_p1 uses int u.n of the P1 velocity",
+            "imbalance_max_abs": float(np.max(np.abs([d["imbalance"] for d in diag]))),
+            "note": "imbalance_p1 and the outlet fractions are int u.n of the P1 velocity over the outlets against "
+                    "the inflow: what the velocity field carries.  They differ from the imposed values by the "
+                    "pressure-stabilisation flux through the element layer at each outlet (sum_e tau_e "
+                    "int grad N . (grad p - P grad p), largest where the pressure gradient is not linear there: "
+                    "coarse outlet layers, flow not developed at the outlet) and by the pressure solver's "
+                    "tolerance.  imbalance_max_abs and consistent_fraction_of_inflow_mean are the consistent "
+                    "fluxes (the continuity residual at the outlet nodes), on which the scheme imposes the "
+                    "balance and the split: zero and the target by construction, not a check",
             "outlets": {str(lab): {"target_fraction": float(solver.split[j]),
                                    "fraction_of_inflow_mean": float(frac[:, j].mean()),
-                                   "error_max": float(np.max(np.abs(outflow[:, j] / outflow.sum(1) - solver.split[j])))}
+                                   "error_max": float(np.max(np.abs(frac[:, j] - solver.split[j]))),
+                                   "consistent_fraction_of_inflow_mean": float(np.mean(consistent[:, j] / inflow))}
                         for j, lab in enumerate(labels)}},
         "pressure_drop_pa": {"last": diag[-1]["dp"], "cycle_mean": float(np.mean([d["dp"] for d in diag]))},
         "wss_pa_last_step": {"mean": float(mag.mean()), "max": float(mag.max())},
         "indices": {k: {"min": float(v.min()), "mean": float(v.mean()), "max": float(v.max())}
                     for k, v in finite.items() if len(v)},
+        "indices_cycle_fraction": fraction,
+        "partial": bool(fraction < 1 - 1e-9),
+        "indices_note": ("the indices average the last cycle" if fraction >= 1 - 1e-9 else
+                         f"PARTIAL: the indices average only {fraction:.3g} of a cycle (from t = 0), not a "
+                         "cardiac cycle: they are not comparable with the indices of a whole cycle"),
+        "periodicity": periodicity.entries,
+        "periodic": periodicity.summary(params.periodic_tol),
         "twssg": "temporal: (1/T) int |d tau/dt| dt",
         "settings": {k: v for k, v in asdict(params).items() if k not in ("waveform", "extra")},
         "outputs": len(writer.records),

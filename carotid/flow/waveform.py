@@ -137,6 +137,19 @@ def fourier_flow(coeffs: np.ndarray, omega: float, t) -> np.ndarray:
     return np.real(np.exp(1j * omega * t[..., None] * k) @ coeffs)
 
 
+def constant_waveform(q_m3s: float, period_s: float = 1.0) -> Waveform:
+    """A steady flow rate as a waveform of period ``period_s`` (s; the "cycle" of a steady run).
+
+    Parameters
+    ----------
+    q_m3s : float
+        Flow rate, m^3/s.
+    period_s : float
+        Period, s.
+    """
+    return Waveform(period_s, np.linspace(0.0, period_s, 9)[:-1], np.full(8, float(q_m3s)))
+
+
 def carotid_waveform() -> Waveform:
     """The built-in common carotid artery flow waveform: T = 0.917 s, mean 6.0 mL/s, peak 25.0 mL/s.
 

@@ -110,6 +110,41 @@ def womersley_velocity(r, t: float, R: float, waveform: Waveform, nu: float, n_h
     return u
 
 
+def womersley_pressure_gradient(t, R: float, waveform, nu: float, n_harmonics: int = 10):
+    """Analytic Womersley axial pressure gradient in a rigid circular pipe, ``-(1/rho) dp/dz``, m/s^2.
+
+    ``-(1/rho) dp/dz = Re sum_k A_k e^{i k omega t}`` with ``A_0 = 8 nu Q_0 / (pi R^4)`` and, for k >= 1,
+    ``A_k = (8 nu Q_k / (pi R^4)) (i k alpha^2 / 8) / (1 - 2 J1(Lambda_k) / (Lambda_k J0(Lambda_k)))``: the
+    momentum equation for ``u = Re u_k(r) e^{i k omega t}`` gives
+    ``u_k = (A_k / (i k omega)) (1 - J0(Lambda_k r/R) / J0(Lambda_k))``, whose flux is
+    ``(A_k / (i k omega)) pi R^2 (1 - 2 J1 / (Lambda_k J0))`` = Q_k (Womersley 1955; validation.md notation).
+
+    Parameters
+    ----------
+    t : float or ndarray
+        Time(s), s.
+    R : float
+        Pipe radius, m.
+    waveform : Waveform
+        Flow rate Q(t).
+    nu : float
+        Kinematic viscosity, m^2/s.
+    n_harmonics : int
+
+    Returns
+    -------
+    float or ndarray
+        Shape of ``t``; positive when the pressure falls along the flow.
+    """
+    alpha = womersley_number(R, waveform.period_s, nu)
+    factors = np.ones(n_harmonics + 1, dtype=complex)
+    if n_harmonics > 0:
+        lam = womersley_lambdas(alpha, n_harmonics)
+        k = np.arange(1, n_harmonics + 1)
+        factors[1:] = (1j * k * alpha**2 / 8.0) / (1.0 - 2.0 * jve(1, lam) / (lam * jve(0, lam)))
+    return 8.0 * nu / (np.pi * R**4) * fourier_flow(waveform.harmonics(n_harmonics) * factors, waveform.omega, t)
+
+
 def womersley_wss(t: float, R: float, waveform: Waveform, mu: float, nu: float, n_harmonics: int = 10) -> float:
     """Analytic Womersley wall shear stress in a rigid circular pipe, Pa, positive along the flow.
 

@@ -15,7 +15,7 @@ import numpy as np
 import pyvista as pv
 from scipy import sparse
 from scipy.sparse.csgraph import connected_components
-from scipy.spatial import Delaunay
+from scipy.spatial import Delaunay, cKDTree
 from skimage.measure import points_in_poly
 
 from carotid.errors import CarotidError
@@ -283,16 +283,51 @@ def cap_open_ends(poly: pv.PolyData) -> pv.PolyData:
     return out
 
 
+def _patch_loops(triangles: np.ndarray, patch: np.ndarray, n_patches: int) -> np.ndarray:
+    """Number of boundary loops of every patch of a closed surface, shape (n_patches,).
+
+    An edge whose two faces lie in different patches is a boundary edge of
+    both; the loops of a patch are the connected components of its boundary
+    edges, found for all patches at once on the graph of (patch, vertex) pairs.
+    """
+    edges, key, _ = edge_faces(triangles)
+    order = np.argsort(key, kind="stable")
+    first, second = order[0::2], order[1::2]
+    pa, pb = patch[first // 3], patch[second // 3]
+    cut = pa != pb
+    ends = edges[first[cut]]
+    owner = np.r_[pa[cut], pb[cut]]
+    pairs = np.c_[np.r_[owner, owner], np.r_[ends[:, 0], ends[:, 0], ends[:, 1], ends[:, 1]]]
+    nodes, node = np.unique(pairs, axis=0, return_inverse=True)
+    node = node.ravel()
+    half = len(pairs) // 2
+    graph = sparse.coo_matrix((np.ones(half), (node[:half], node[half:])), shape=(len(nodes), len(nodes)))
+    _, comp = connected_components(graph, directed=False)
+    loops = np.unique(np.c_[nodes[:, 0], comp], axis=0)[:, 0]
+    return np.bincount(loops, minlength=n_patches)
+
+
 def label_flat_caps(poly: pv.PolyData, *, feature_deg: float = 60.0, flat_deg: float = 1.0,
-                    min_area_fraction: float = 1e-3) -> pv.PolyData:
+                    min_area_fraction: float = 1e-3, end_ball: float = 1.5, end_tolerance: float = 0.05
+                    ) -> pv.PolyData:
     """Label the flat end caps of a closed, unlabelled surface (wall 1, inlet 2, outlets 3, ...).
 
     Faces are grouped into patches bounded by sharp edges (adjacent normals
-    more than ``feature_deg`` apart); a patch whose normals all lie within
-    ``flat_deg`` of its mean normal, that is not the largest patch and
-    that covers at least ``min_area_fraction`` of the surface is a cap.
+    more than ``feature_deg`` apart).  A patch is an end cap when
+
+    * its normals all lie within ``flat_deg`` of its mean normal, it is not
+      the largest patch and it covers at least ``min_area_fraction`` of the
+      surface (a flat patch);
+    * its boundary is a single loop (a disc: the flat annulus of a sudden
+      expansion or contraction has two loops);
+    * the lumen ends there, so that the lumen's axis crosses it: every
+      vertex within ``end_ball`` equivalent radii (``sqrt(area / pi)``) of
+      the cap's centroid lies on the inner side of the cap's plane, within
+      ``end_tolerance`` equivalent radii (a flat step inside the lumen has
+      wall on both sides of its plane).
+
     The cap with the largest area (the common carotid inlet) is 2, the
-    others 3, 4, ... by decreasing area.
+    others 3, 4, ... by decreasing area; every other patch is wall.
 
     Parameters
     ----------
@@ -302,6 +337,9 @@ def label_flat_caps(poly: pv.PolyData, *, feature_deg: float = 60.0, flat_deg: f
         Sharp-edge and flatness angles (degrees).
     min_area_fraction : float
         Smallest cap area relative to the whole surface (smaller flat patches are wall).
+    end_ball, end_tolerance : float
+        Radius of the neighbourhood checked to lie behind the cap, and the
+        tolerance of that check, in equivalent cap radii.
 
     Returns
     -------
@@ -311,7 +349,7 @@ def label_flat_caps(poly: pv.PolyData, *, feature_deg: float = 60.0, flat_deg: f
     Raises
     ------
     CarotidError
-        If no flat cap is found.
+        If no flat end cap is found.
     """
     poly = poly.triangulate().clean()
     points = np.asarray(poly.points, dtype=float)
@@ -334,6 +372,15 @@ def label_flat_caps(poly: pv.PolyData, *, feature_deg: float = 60.0, flat_deg: f
     np.maximum.at(spread, patch, 1.0 - np.einsum("ij,ij->i", unit, mean[patch]))
     flat = ((spread < 1.0 - np.cos(np.radians(flat_deg))) & (np.arange(n_patches) != np.argmax(patch_area))
             & (patch_area >= min_area_fraction * area.sum()))
+    flat &= _patch_loops(triangles, patch, n_patches) == 1
+    centroid = np.stack([np.bincount(patch, weights=area * points[triangles].mean(axis=1)[:, k],
+                                     minlength=n_patches) for k in range(3)], axis=1)
+    centroid /= np.maximum(patch_area[:, None], 1e-300)
+    tree = cKDTree(points)
+    for index in np.flatnonzero(flat):  # a few flat candidates
+        radius = np.sqrt(patch_area[index] / np.pi)
+        near = tree.query_ball_point(centroid[index], end_ball * radius)
+        flat[index] = ((points[near] - centroid[index]) @ mean[index]).max() <= end_tolerance * radius
     caps = np.flatnonzero(flat)
     if caps.size == 0:
         raise CarotidError("the surface has no face labels and no flat end caps: label the inlet and outlets "

@@ -5,6 +5,9 @@ output of ``carotid surface``); ``carotid mesh --from-surface FILE -o
 CASE_DIR`` meshes any surface file pyvista reads (VTP, VTK, STL, PLY, OBJ):
 a labelled closed surface is used as is, an open one gets a planar cap per
 boundary loop, an unlabelled closed one gets its flat end caps detected.
+The file must be in mm (``--scale 1000`` for metres: a surface spanning less
+than 0.5 units is refused).  A surface with self-intersecting or needle
+triangles has its wall remeshed in place first (``carotid.mesh.repair``).
 """
 
 from __future__ import annotations
@@ -12,14 +15,17 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import numpy as np
 import pyvista as pv
 
 from carotid.errors import CarotidError
-from carotid.mesh.boundary import LABELS, cap_open_ends, edge_faces, label_flat_caps
+from carotid.mesh.boundary import LABELS, cap_open_ends, check_surface, edge_faces, label_flat_caps, signed_volume
 from carotid.mesh.core import CORES
 from carotid.mesh.io import write_mesh
-from carotid.mesh.mesher import build_mesh
+from carotid.mesh.mesher import build_mesh, median_edge
+from carotid.mesh.repair import remesh_wall, surface_defects
 from carotid.stages import MeshStageParameters
+from carotid.surface.external import METRES_EXTENT
 
 
 def read_surface(path: Path) -> pv.PolyData:
@@ -37,15 +43,54 @@ def read_surface(path: Path) -> pv.PolyData:
     return data
 
 
-def external_surface(poly: pv.PolyData) -> pv.PolyData:
-    """A labelled closed surface from any triangle surface (see the module docstring)."""
+def external_surface(poly: pv.PolyData, scale: float | None = None) -> pv.PolyData:
+    """A labelled closed surface in mm from any triangle surface (see the module docstring).
+
+    Parameters
+    ----------
+    poly : pyvista.PolyData
+        Triangle surface, in mm or in units that ``scale`` turns into mm.
+    scale : float, optional
+        Factor to mm (1000 for metres).
+
+    Raises
+    ------
+    CarotidError
+        Non-positive scale, or a surface spanning less than 0.5 mm (metres
+        given as mm).
+    """
     poly = poly.triangulate().clean()
+    if scale is not None:
+        if not scale > 0:
+            raise CarotidError(f"--scale {scale} must be positive")
+        poly.points = np.asarray(poly.points) * float(scale)
+    extent = float(np.ptp(np.asarray(poly.points), axis=0).max())
+    if extent < METRES_EXTENT:
+        raise CarotidError(f"the surface spans {extent:.3g} mm: looks like metres, pass --scale 1000")
     _, _, counts = edge_faces(poly.regular_faces)
     if (counts == 1).any():
         return cap_open_ends(poly)
     if LABELS in poly.cell_data:
         return poly
     return label_flat_caps(poly)
+
+
+def repaired_surface(poly: pv.PolyData) -> pv.PolyData:
+    """The labelled surface, with its wall remeshed in place if it has defects (see :mod:`carotid.mesh.repair`).
+
+    Prints one line with the defects found and the volume change when it remeshes.
+    """
+    surface = check_surface(poly)
+    defects = surface_defects(surface)
+    if not any(defects.values()):
+        return poly
+    repaired = remesh_wall(surface, median_edge(surface))
+    after = check_surface(repaired)
+    before = signed_volume(surface.points, surface.triangles)
+    change = signed_volume(after.points, after.triangles) / before - 1.0
+    print(f"surface remeshed in place ({defects['self_intersections']} self-intersecting triangle pairs, "
+          f"{defects['needles']} needle triangles): {len(after.triangles)} triangles, volume change {change:+.2%}")
+    return repaired
 
 
 def mesh_case(surface: pv.PolyData, case_dir: Path, **params) -> dict:
@@ -63,9 +108,11 @@ def cmd_mesh(args: argparse.Namespace) -> int:
     if args.from_surface is not None:
         if args.output is None:
             raise CarotidError("--from-surface needs -o CASE_DIR")
-        surface = external_surface(read_surface(args.from_surface))
+        surface = repaired_surface(external_surface(read_surface(args.from_surface), args.scale))
         case_dir = args.output
     else:
+        if args.scale is not None:
+            raise CarotidError("--scale applies to --from-surface only")
         if args.case_dir is None:
             raise CarotidError("give CASE_DIR, or --from-surface FILE -o CASE_DIR")
         path = args.case_dir / "surface.vtp"
@@ -90,6 +137,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("case_dir", nargs="?", type=Path, metavar="CASE_DIR",
                    help="case folder holding surface.vtp; the mesh files are written there")
     p.add_argument("--from-surface", type=Path, metavar="FILE", help="mesh this surface file instead")
+    p.add_argument("--scale", type=float, help="factor to mm for --from-surface (1000 for metres)")
     p.add_argument("-o", "--output", type=Path, metavar="CASE_DIR", help="output folder (with --from-surface)")
     p.add_argument("--layers", type=int, default=10, help="boundary sub-layers N (default 10; 0: none)")
     p.add_argument("--ratio", type=float, default=1.2, help="height ratio f between sub-layers (default 1.2)")

@@ -128,7 +128,7 @@ def mesh_core_tetgen(points: np.ndarray, triangles: np.ndarray, size: float, *, 
 
 
 def mesh_core_gmsh(points: np.ndarray, triangles: np.ndarray, size: float, *, algorithm: str = "hxt",
-                   optimize: bool = True, threads: int = 2) -> tuple[np.ndarray, np.ndarray]:
+                   optimize: bool = True, threads: int = 1, seed: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Tetrahedra inside a closed surface with gmsh (HXT or Delaunay 3D); the triangles are kept.
 
     The surface is given to gmsh as the mesh of one discrete surface entity
@@ -146,7 +146,11 @@ def mesh_core_gmsh(points: np.ndarray, triangles: np.ndarray, size: float, *, al
         Run gmsh's tetrahedral optimiser (``Mesh.Optimize``) on elements of
         quality (gamma) below 0.4.
     threads : int
-        Threads for HXT.
+        Threads for HXT.  With more than one, HXT's parallel insertion order
+        (and so the mesh) changes from run to run; one thread and a fixed
+        ``seed`` give the same mesh for the same input.
+    seed : int
+        gmsh's ``Mesh.RandomSeed`` (the perturbations of its Delaunay kernels).
 
     Returns
     -------
@@ -164,6 +168,7 @@ def mesh_core_gmsh(points: np.ndarray, triangles: np.ndarray, size: float, *, al
         gmsh.option.setNumber("Mesh.Optimize", int(optimize))
         gmsh.option.setNumber("Mesh.OptimizeThreshold", 0.4)  # gmsh's default 0.3 leaves ~1.5 % below 20 deg
         gmsh.option.setNumber("General.NumThreads", threads)
+        gmsh.option.setNumber("Mesh.RandomSeed", seed)
         try:
             gmsh.model.mesh.generate(3)
         except Exception as exc:  # gmsh raises a bare Exception with its log line

@@ -1,4 +1,4 @@
-"""Labelled, capped test surfaces: straight, stenosed or bent tubes and a Y bifurcation.
+"""Labelled, capped test surfaces: straight, stenosed or bent tubes, a stenotic nozzle and a Y bifurcation.
 
 The surfaces are made with gmsh's OpenCASCADE kernel (a loft of circles or a
 union of cylinders) and meshed by gmsh's Frontal-Delaunay surface mesher, so
@@ -42,9 +42,9 @@ def stenosis_profile(z: np.ndarray, radius: float, length: float, stenosis: floa
 def _mesh_labelled(gmsh, volume_tag: int, size: float, inlet_axis: np.ndarray) -> pv.PolyData:
     """Mesh the boundary of an OCC volume and return it as a labelled PolyData.
 
-    Planar faces are caps; the one whose centre is lowest along ``inlet_axis``
-    is the inlet (2); the other caps are numbered 3, 4, ... by increasing x of
-    their centres.
+    Planar faces bounded by a single curve are caps (a planar annulus is
+    wall); the one whose centre is lowest along ``inlet_axis`` is the inlet
+    (2); the other caps are numbered 3, 4, ... by increasing x of their centres.
     """
     gmsh.option.setNumber("Mesh.MeshSizeMax", size)
     gmsh.option.setNumber("Mesh.MeshSizeMin", 0.25 * size)
@@ -59,7 +59,7 @@ def _mesh_labelled(gmsh, volume_tag: int, size: float, inlet_axis: np.ndarray) -
     caps = []
     for _, signed in boundary:
         tag = abs(signed)
-        if gmsh.model.getType(2, tag) == "Plane":
+        if gmsh.model.getType(2, tag) == "Plane" and len(gmsh.model.getBoundary([(2, tag)])) == 1:
             box = np.array(gmsh.model.getBoundingBox(2, tag))
             caps.append((tag, 0.5 * (box[:3] + box[3:])))
     inlet = min(caps, key=lambda cap: float(cap[1] @ inlet_axis))
@@ -131,6 +131,37 @@ def labelled_tube(radius: float = 3.0, length: float = 20.0, size: float = 0.5, 
     if bend_deg > 0:
         surface.points = bend_z_axis(np.asarray(surface.points), length / np.radians(bend_deg))
     return surface
+
+
+def stenotic_nozzle(radius: float = 6.0, throat_radius: float = 2.0, cone_deg: float = 20.0,
+                    throat_length: float = 40.0, inlet_length: float = 10.0, outlet_length: float = 30.0,
+                    size: float = 1.0) -> pv.PolyData:
+    """The stenotic nozzle (FDA benchmark shape): pipe, conical contraction, throat, sudden expansion, pipe.
+
+    Along +z from the inlet at z = 0: a pipe of ``radius`` and ``inlet_length``,
+    a cone of included angle ``cone_deg`` down to ``throat_radius`` (length
+    ``(radius - throat_radius) / tan(cone_deg / 2)``, 22.7 mm by default), the
+    throat of ``throat_length``, then a sudden expansion (a flat annulus, labelled
+    wall) back to ``radius`` for ``outlet_length``.  Lengths in mm.
+
+    Returns
+    -------
+    pyvista.PolyData
+        Closed, outward-oriented triangles with ``CellEntityIds``: wall 1 (with
+        the annulus), inlet 2 (z = 0), outlet 3.
+    """
+    cone = (radius - throat_radius) / np.tan(np.radians(0.5 * cone_deg))
+    z = np.cumsum([0.0, inlet_length, cone, throat_length])
+    with gmsh_session() as gmsh:
+        occ = gmsh.model.occ
+        parts = [occ.addCylinder(0, 0, z[0], 0, 0, inlet_length, radius),
+                 occ.addCone(0, 0, z[1], 0, 0, cone, radius, throat_radius),
+                 occ.addCylinder(0, 0, z[2], 0, 0, throat_length, throat_radius),
+                 occ.addCylinder(0, 0, z[3], 0, 0, outlet_length, radius)]
+        fused, _ = occ.fuse([(3, parts[0])], [(3, tag) for tag in parts[1:]])
+        occ.synchronize()
+        volume = [tag for dim, tag in fused if dim == 3][0]
+        return _mesh_labelled(gmsh, volume, size, np.array([0.0, 0.0, 1.0]))
 
 
 def bend_z_axis(points: np.ndarray, bend_radius: float) -> np.ndarray:

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from carotid import __version__
+from carotid.centerline.model import branch_regions
 from carotid.flow.indices import HIGH_OSI, LOW_TAWSS_PA, node_areas
 from carotid.io import atomic_path, read_image
 from carotid.report import figures
@@ -189,27 +190,6 @@ def find_image(case: Case) -> tuple[Path | None, str]:
             return path, ""
     return None, ("the input CT image is not recorded in this case folder" if not any(candidates)
                   else f"the input CT image {next(filter(None, candidates))} is not found")
-
-
-def branch_regions(points: np.ndarray, branches) -> np.ndarray:
-    """Index of the branch whose axis passes nearest to each point.
-
-    Parameters
-    ----------
-    points : ndarray, shape (n, 3)
-        Wall points, mm.
-    branches : list of Branch
-        Centerline branches.
-
-    Returns
-    -------
-    ndarray of int, shape (n,)
-    """
-    from scipy.spatial import cKDTree
-
-    axis = np.concatenate([b.points for b in branches])
-    owner = np.repeat(np.arange(len(branches)), [len(b.points) for b in branches])
-    return owner[cKDTree(axis).query(points)[1]]
 
 
 def exposure_rows(wall, regions: np.ndarray, names: list[str]) -> list[tuple]:

@@ -1,0 +1,119 @@
+"""`carotid verify` fails on a wrong solver: mutation tests, and the analytic references it relies on.
+
+Each mutant changes the solver in memory (monkeypatch), then the verification's flow cases run lazily
+(:func:`carotid.flow.verify.solver_cases`, quick meshes) until one fails; the test asserts that one does.
+The straight-pipe cases cannot see the convective and characteristic terms (they vanish there), so those
+two mutants are caught by the entrance-length case.
+"""
+
+import numpy as np
+import pytest
+
+from carotid.errors import CarotidError
+from carotid.flow import assembly
+from carotid.flow.cbs import CBSSolver
+from carotid.flow.verify import durst_development_length, solver_cases
+from carotid.flow.womersley import womersley_pressure_gradient
+
+
+def _scaled_viscosity(factor):
+    def patch(monkeypatch):
+        init = CBSSolver.__init__
+
+        def wrong_nu(self, mesh, inlet_speed, nu, *args, **kwargs):
+            init(self, mesh, inlet_speed, factor * nu, *args, **kwargs)
+
+        monkeypatch.setattr(CBSSolver, "__init__", wrong_nu)
+    return patch
+
+
+def _residual(transform):
+    """Replace the explicit momentum residual by ``transform(kernel, tets, grads, volumes, u, nu_e, half_dt,
+    out)``; ``kernel`` is the original (convection + viscosity + characteristic term)."""
+    def patch(monkeypatch):
+        kernel = assembly.momentum_residual
+        monkeypatch.setattr(assembly, "momentum_residual",
+                            lambda *args: transform(kernel, *args))
+    return patch
+
+
+def _no_convection(kernel, tets, grads, volumes, u, nu_e, half_dt, out):
+    # viscous term only: the full residual without characteristic term minus the pure convection C(u)u
+    convection = np.empty_like(out)
+    kernel(tets, grads, volumes, u, np.zeros_like(nu_e), 0.0, convection)
+    kernel(tets, grads, volumes, u, nu_e, 0.0, out)
+    out -= convection
+
+
+def _flipped_characteristic(kernel, tets, grads, volumes, u, nu_e, half_dt, out):
+    kernel(tets, grads, volumes, u, nu_e, -half_dt, out)
+
+
+def _idle_step(monkeypatch):
+    step = CBSSolver.step
+
+    def idle(self, max_dt=None):  # the clock advances, the fields do not
+        u, p = self.u, self.p
+        info = step(self, max_dt)
+        self.u, self.p = u, p
+        return info
+
+    monkeypatch.setattr(CBSSolver, "step", idle)
+
+
+MUTANTS = {
+    "viscosity x1.5": (_scaled_viscosity(1.5), "explicit"),
+    "viscosity x0.67": (_scaled_viscosity(0.67), "implicit"),
+    "idle step": (_idle_step, "explicit"),
+    "no convection": (_residual(_no_convection), "implicit"),
+    "flipped characteristic term": (_residual(_flipped_characteristic), "implicit"),
+}
+
+
+@pytest.mark.parametrize("mutant", list(MUTANTS))
+def test_every_mutant_fails_a_verify_case(mutant, monkeypatch):
+    patch, viscous = MUTANTS[mutant]
+    patch(monkeypatch)
+    failed = None
+    try:
+        for name, passed, text, _ in solver_cases(viscous, quick=True):
+            if not passed:
+                failed = f"{name}: {text}"
+                break
+    except CarotidError as error:  # a solver that breaks down fails too
+        failed = str(error)
+    assert failed is not None, f"{mutant}: every quick case passed"
+
+
+def test_womersley_pressure_gradient_balances_the_flow_and_the_wall_shear():
+    # section-integrated momentum: pi R^2 A(t) = dQ/dt + 2 pi R tau_w(t) / rho, with tau_w from the
+    # independent closed form of carotid.flow.womersley (validation.md)
+    from carotid.flow.waveform import carotid_waveform, fourier_flow
+    from carotid.flow.womersley import womersley_wss
+
+    wave, nu, rho, r, n = carotid_waveform(), 3.3e-6, 1060.0, 3.25e-3, 10
+    t = np.linspace(0.0, wave.period_s, 50)
+    h = 1e-6
+    q = wave.harmonics(n)
+    dqdt = (fourier_flow(q, wave.omega, t + h) - fourier_flow(q, wave.omega, t - h)) / (2 * h)
+    balance = (dqdt + 2 * np.pi * r * womersley_wss(t, r, wave, rho * nu, nu, n) / rho) / (np.pi * r**2)
+    a = womersley_pressure_gradient(t, r, wave, nu, n)
+    assert np.abs(a - balance).max() <= 1e-6 * np.abs(balance).max()
+    # steady limit: Poiseuille, 8 nu Q / (pi R^4)
+    assert womersley_pressure_gradient(t, r, wave, nu, 0) == pytest.approx(8 * nu * q[0].real / (np.pi * r**4))
+
+
+def test_durst_correlation_limits():
+    assert durst_development_length(0.0) == pytest.approx(0.619)
+    assert durst_development_length(1000.0) == pytest.approx(56.7, rel=1e-3)
+    assert durst_development_length(50.0) == pytest.approx(2.99, abs=0.01)
+
+
+def test_entrance_length_and_generalised_inlet():
+    from carotid.flow.verify import entrance, inlet_profiles
+
+    e = entrance(viscous="implicit")  # Re 50: Durst 2.99 D; measured 3.01 D
+    assert abs(e["length_error"]) <= 0.1 and e["residual"] < 1e-3
+    assert np.all(np.diff(e["centreline"]["u_over_mean"]) > -1e-3)  # the core accelerates monotonically
+    g = inlet_profiles()  # measured 0.8 % (48-gon) and 0.6 %
+    assert g["circle_error"] <= 0.02 and g["ellipse_error"] <= 0.02
