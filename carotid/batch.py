@@ -51,7 +51,18 @@ COHORT_COLUMNS = {
     "nascet": ("fraction", "NASCET stenosis degree of stenosis_branch, 1 - d_min / d_distal (diameters)"),
     "ecst": ("fraction", "ECST stenosis degree of stenosis_branch, 1 - d_min / d_local (diameters)"),
     "mesh_tetrahedra": ("count", "tetrahedra of the volume mesh"),
-    "tawss_mean_pa": ("Pa", "time-averaged wall shear stress over the last cycle, mean over the wall nodes"),
+    "tawss_mean_pa": ("Pa", "time-averaged wall shear stress over the last cycle (or the part of it run: "
+                            "indices_cycle_fraction), mean over the wall nodes"),
+    "indices_cycle_fraction": ("fraction", "fraction of a cardiac cycle the wall indices average; under 1 the "
+                                           "indices are partial, not comparable with those of a whole cycle"),
+    "periodic_status": ("", "periodic or not periodic: the last cycle's TAWSS change against the simulate stage's "
+                            "periodic_tol; not assessed without a tolerance or under two whole cycles"),
+    "tawss_last_cycle_change": ("fraction", "area-weighted L2 relative change of the TAWSS of the last whole cycle "
+                                            "from the previous cycle's; empty under two whole cycles"),
+    "tawss_gci_percent": ("%", "fine-grid grid convergence index of the area-weighted mean TAWSS over the whole "
+                               "wall (Celik et al. 2008, three meshes, Fs = 1.25; flow/convergence.json of "
+                               "carotid simulate --convergence); empty without a study or when the meshes' "
+                               "values diverge"),
     "osi_area_fraction": ("fraction", f"fraction of the wall area where the oscillatory shear index exceeds "
                                       f"{HIGH_OSI}"),
     "low_tawss_area_fraction": ("fraction", f"fraction of the wall area where the time-averaged wall shear stress "
@@ -154,6 +165,10 @@ def case_summary(case: Case, case_dir: Path, outcome: dict) -> dict:
     stenosis = (geometry.get("stenosis") or {}) if geometry.get("bifurcation_mm") else {}
     mesh = _read_json(case_dir / "mesh_quality.json")
     flow = _read_json(case_dir / "flow" / "summary.json")
+    periodic = flow.get("periodic", {})
+    change = periodic.get("last_relative_change")  # None: under two whole cycles
+    gci = _read_json(case_dir / "flow" / "convergence.json").get("branches", {}).get("TAWSS", {}).get(
+        "whole wall", {}).get("gci_fine21")
     osi, low_tawss = _wall_area_fractions(case_dir / "flow" / "indices.vtp")
     return {
         "case_id": case.case_id, "status": outcome["status"], "failed_stage": outcome.get("failed_stage", ""),
@@ -163,6 +178,10 @@ def case_summary(case: Case, case_dir: Path, outcome: dict) -> dict:
         "ecst": stenosis.get("ecst", ""),
         "mesh_tetrahedra": mesh.get("elements", {}).get("tetrahedra", ""),
         "tawss_mean_pa": flow.get("indices", {}).get("TAWSS", {}).get("mean", ""),
+        "indices_cycle_fraction": flow.get("indices_cycle_fraction", ""),
+        "periodic_status": periodic.get("status", ""),
+        "tawss_last_cycle_change": "" if change is None else change,
+        "tawss_gci_percent": "" if gci is None else 100.0 * gci,
         "osi_area_fraction": osi, "low_tawss_area_fraction": low_tawss,
         **{f"seconds_{name}": seconds.get(name, "") for name in STAGE_NAMES},
         "seconds_total": sum(seconds.values()),

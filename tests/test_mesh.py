@@ -19,8 +19,9 @@ from carotid.mesh.boundary import LABELS, cap_planes, signed_volume
 from carotid.mesh.command import register
 from carotid.mesh.core import boundary_faces, face_keys
 from carotid.mesh.io import split_cells
-from carotid.mesh.layers import split_prisms, tet_volumes
-from carotid.mesh.quality import dihedral_angles, min_dihedral
+from carotid.mesh.layers import split_prisms, tet_volumes, triangle_min_angles
+from carotid.mesh.mesher import CORE_MIN_DIHEDRAL
+from carotid.mesh.quality import dihedral_angles, min_dihedral, prism_measures
 from carotid.mesh.smooth import lloyd_smooth
 from carotid.mesh.testing import labelled_bifurcation, labelled_tube
 
@@ -157,6 +158,38 @@ def test_core_quality_bounds(tube_mesh, bifurcation_mesh):
         assert core.min() >= 10.0
         assert np.mean(core >= 20.0) >= 0.99
         assert quality["core"]["min_dihedral"]["min_deg"] == pytest.approx(core.min())
+
+
+def test_prism_measures_of_right_and_sheared_prisms():
+    base = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.5, np.sqrt(0.75), 0.0]])
+    shift = np.array([0.3, 0.0, 0.1])  # a sheared prism: skew atan(0.3 / 0.1)
+    points = np.vstack([base, base + [0.0, 0.0, 0.1], base + shift])
+    prisms = np.array([[0, 1, 2, 3, 4, 5], [0, 1, 2, 6, 7, 8]])
+    m = prism_measures(points, prisms, np.array([0.1, 0.2]))
+    np.testing.assert_allclose(m["base_min_angle_deg"], 60.0)
+    np.testing.assert_allclose(m["base_max_angle_deg"], 60.0)
+    np.testing.assert_allclose(m["skew_deg"], [0.0, np.degrees(np.arctan(3.0))], atol=1e-9)
+    np.testing.assert_allclose(m["height_mm"], 0.1)
+    np.testing.assert_allclose(m["height_ratio"], [1.0, 0.5])
+
+
+def test_layer_quality_is_reported_by_prisms_on_the_tube(tube, tube_mesh):
+    """Straight tube, uniform layer: prism bases are the wall triangles, barely shrunk; right prisms."""
+    mesh, quality = tube_mesh
+    prisms = quality["layer_prisms"]
+    surf = check_surface(tube)
+    wall_angle = triangle_min_angles(surf.points, surf.triangles[surf.labels == 1]).min()
+    assert prisms["count"] == N * np.sum(surf.labels == 1)
+    assert 0.75 * wall_angle <= prisms["base_min_angle_deg"]["min"] <= wall_angle + 1e-9
+    assert prisms["skew_deg"]["max"] < 5.0  # vertex normals against face normals of a 0.6 mm / R 3 mm tube
+    assert 0.99 < prisms["height_ratio"]["min"] <= prisms["height_ratio"]["max"] < 1.0 + 1e-9
+    assert prisms["degenerate"]["count"] == 0
+    assert quality["layer"]["elements"] == "split-prism tetrahedra"
+    whole = quality["mesh"]
+    assert whole["core"] == {"floor_deg": CORE_MIN_DIHEDRAL, "below_floor": 0,
+                             "worst_deg": quality["core"]["min_dihedral"]["min_deg"]}
+    assert whole["min_dihedral_deg"] == min(quality["core"]["min_dihedral"]["min_deg"],
+                                            quality["layer"]["min_dihedral"]["min_deg"])
 
 
 def test_bifurcation_mesh_is_valid(bifurcation_mesh):

@@ -256,3 +256,32 @@ def test_cohort_csv_is_tidy_and_described(small_image, tmp_path):
     assert set(sidecar["thresholds"]) == {"osi", "low_tawss_pa"}
     for key, column in (("osi", "osi_area_fraction"), ("low_tawss_pa", "low_tawss_area_fraction")):
         assert f"{sidecar['thresholds'][key]:g}" in sidecar["columns"][column]["description"]
+
+
+def test_cohort_columns_of_cycle_state_and_convergence_are_the_records(tmp_path):
+    """indices_cycle_fraction, periodic_status, tawss_last_cycle_change and tawss_gci_percent are the values of
+    flow/summary.json and flow/convergence.json (the GCI in %), empty when a record lacks them."""
+    from carotid.batch import COHORT_COLUMNS, Case, case_summary, write_cohort
+
+    studied, plain = tmp_path / "studied", tmp_path / "plain"
+    for case, periodic in ((studied, {"status": "not periodic", "last_relative_change": 0.02345}),
+                           (plain, {"status": "not assessed", "last_relative_change": None})):
+        (case / "flow").mkdir(parents=True)
+        (case / "flow" / "summary.json").write_text(json.dumps(
+            {"indices_cycle_fraction": 0.3, "partial": True, "periodic": {"tolerance": 0.01, **periodic}}))
+    (studied / "flow" / "convergence.json").write_text(json.dumps(
+        {"branches": {"TAWSS": {"ICA": {"gci_fine21": 0.5}, "whole wall": {"gci_fine21": 0.04321}}}}))
+    rows = [case_summary(Case(path.name, tmp_path / "image.nii.gz", {}), path, {"status": "ok"})
+            for path in (studied, plain)]
+    write_cohort(rows, tmp_path / "cohort.csv")
+    with open(tmp_path / "cohort.csv", newline="") as handle:
+        found, empty = csv.DictReader(handle)
+    assert float(found["indices_cycle_fraction"]) == 0.3 and found["periodic_status"] == "not periodic"
+    assert float(found["tawss_last_cycle_change"]) == pytest.approx(0.02345, rel=1e-3)
+    assert float(found["tawss_gci_percent"]) == pytest.approx(4.321, rel=1e-3)
+    assert empty["periodic_status"] == "not assessed"
+    assert empty["tawss_last_cycle_change"] == empty["tawss_gci_percent"] == ""
+    columns = json.loads((tmp_path / "cohort.json").read_text())["columns"]
+    assert columns["tawss_gci_percent"]["unit"] == "%" and columns["indices_cycle_fraction"]["unit"] == "fraction"
+    for name in ("indices_cycle_fraction", "periodic_status", "tawss_last_cycle_change", "tawss_gci_percent"):
+        assert columns[name]["description"] == COHORT_COLUMNS[name][1]

@@ -1,14 +1,17 @@
-"""The report's judgements on their own: stenosis category, quality flags, stale and partial results."""
+"""The report's judgements on their own: stenosis category, quality flags, stale and partial results, and the
+first page's cycle state and grid convergence study shown as the records hold them."""
 
+import html
 import json
 import os
+import re
 import shutil
 
 import numpy as np
 import pytest
 import pyvista as pv
 
-from carotid.report.checks import periodicity_error, quality_checks, stenosis_category
+from carotid.report.checks import quality_checks, stenosis_category
 from carotid.report.html import Case, case_warnings, exposure_rows, readable
 
 
@@ -31,15 +34,6 @@ def test_mesh_quality_flags_thin_tetrahedra_and_missing_layers():
     assert flags["wall layers found under every wall node, fewest"] is False
     assert flags["smallest dihedral angle, core (deg)"] is True
     assert flags["volume error against the surface"] is True
-
-
-def test_periodicity_error_of_a_signal_settling_between_cycles():
-    t = np.linspace(0.0, 3.0, 301)
-    periodic = np.sin(2 * np.pi * t)
-    assert periodicity_error(t, periodic, 1.0) == pytest.approx(0.0, abs=1e-9)
-    drifting = periodic + 0.1 * t  # rises 0.1 per cycle on a range of about 2.1
-    assert periodicity_error(t, drifting, 1.0) == pytest.approx(0.1 / np.ptp(drifting[t >= 2.0]), rel=1e-6)
-    assert periodicity_error(t[t <= 1.5], periodic[t <= 1.5], 1.0) is None
 
 
 def test_exposure_fractions_are_area_weighted():
@@ -98,8 +92,10 @@ def test_indices_from_under_one_cycle_are_reported_partial(demo_run, tmp_path):
     proc, out = demo_run
     assert proc.returncode == 0, proc.stderr
     case = _copy_case(out / "case", tmp_path / "case")
-    _edit(case / "flow" / "summary.json", lambda d: d.update(cycles=0.3))
-    assert any("0.3 of a cardiac cycle" in w and "partial" in w for w in case_warnings(Case.read(case)))
+    assert not any("partial" in w for w in case_warnings(Case.read(case)))
+    _edit(case / "flow" / "summary.json", lambda d: d.update(partial=True, indices_cycle_fraction=0.3))
+    partial = [w for w in case_warnings(Case.read(case)) if "partial" in w]
+    assert len(partial) == 1 and "only 0.3 of a cardiac cycle" in partial[0]
 
 
 def test_segmentation_rerun_makes_the_centerlines_stale(demo_run, tmp_path):
@@ -108,3 +104,86 @@ def test_segmentation_rerun_makes_the_centerlines_stale(demo_run, tmp_path):
     case = _copy_case(out / "case", tmp_path / "case")
     _edit(case / "segmentation" / "report.json", lambda d: d.update(lumen_volume_mm3=d["lumen_volume_mm3"] + 50))
     assert any("centerlines were computed" in w for w in case_warnings(Case.read(case)))
+
+
+def _cells(page: str, caption: str) -> list[list[str]]:
+    """The body cells of the table of a page whose caption starts with ``caption``, unescaped."""
+    table = re.search(rf"<caption>{re.escape(html.escape(caption))}.*?</table>", page, re.S)[0]
+    return [[html.unescape(c) for c in re.findall(r"<t[dh]>(.*?)</t[dh]>", row)]
+            for row in re.findall(r"<tr>(<td>.*?)</tr>", table)]
+
+
+def _write_study(case, names: list[str]) -> dict:
+    """A made-up three-mesh study of the case written as ``flow/convergence.json`` and ``flow/convergence.vtp``:
+    per-branch means from ``grid_convergence`` (the first branch oscillatory, the second divergent) and a per-node
+    TAWSS GCI rising along x with a few nodes without an estimate."""
+    from carotid.flow.convergence import QUANTITIES, STATUS, _tables, grid_convergence
+    from carotid.flow.output import write_wall_vtp
+
+    h = np.array([0.4, 0.6, 0.9])
+    phi = 1.0 + np.arange(len(names)) + np.outer(h ** 2, 0.5 + 0.1 * np.arange(len(names)))
+    phi[:, 0] = [1.0, 1.1, 0.85]  # eps32 / eps21 = -2.5: oscillatory
+    phi[:, 1] = [1.0, 1.2, 1.3]  # eps32 / eps21 = 0.5: divergent
+    wall = pv.read(case / "flow" / "indices.vtp")
+    x = np.asarray(wall.points)[:, 0]
+    gci = 0.01 + 0.1 * (x - x.min()) / np.ptp(x)
+    gci[::50] = np.nan
+    study = {"levels": [{"level": k, "h_mm": h[k], "tetrahedra": 1000 * (3 - k), "nodes": 300 * (3 - k), "cycles": 1.0,
+                         "partial": False, "periodic": {"status": "not assessed"}, "seconds": 10.0} for k in range(3)],
+             "branches": {q: _tables(grid_convergence(h, phi * (k + 1)), names) for k, q in enumerate(QUANTITIES)},
+             "map": {q: {"median_gci": 0.05, **{s: 0.25 for s in STATUS}} for q in QUANTITIES}}
+    (case / "flow" / "convergence.json").write_text(json.dumps(study))
+    write_wall_vtp(case / "flow" / "convergence.vtp", np.asarray(wall.points), wall.faces.reshape(-1, 4)[:, 1:],
+                   {"TAWSS_GCI": gci})
+    return study
+
+
+def test_first_page_shows_cycle_state_partial_indices_and_convergence_study(demo_run, tmp_path):
+    """The cycle state, the partial warning and the grid convergence table and map carry the numbers of
+    ``flow/summary.json`` and ``flow/convergence.json``; without a study the page says so."""
+    from carotid.centerline import read_centerlines
+    from carotid.report import build_report
+
+    proc, out = demo_run
+    assert proc.returncode == 0, proc.stderr
+    demo_page = (out / "case" / "report.html").read_text()
+    assert "No convergence study (carotid simulate --convergence)" in demo_page[:demo_page.index("<h2>Details")]
+    case = _copy_case(out / "case", tmp_path / "case")
+    cycles = [{"cycle": 1, "tawss_mean_pa": 1.8123, "relative_change": None, "mean_change": None},
+              {"cycle": 2, "tawss_mean_pa": 1.7034, "relative_change": 0.0871, "mean_change": 0.0639},
+              {"cycle": 3, "tawss_mean_pa": 1.6991, "relative_change": 0.0234, "mean_change": 0.00253}]
+    _edit(case / "flow" / "summary.json", lambda d: d.update(
+        partial=True, indices_cycle_fraction=0.3, indices_note="PARTIAL: the indices average only 0.3 of a cycle",
+        periodicity=cycles,
+        periodic={"tolerance": 0.01, "status": "not periodic", "last_relative_change": 0.0234,
+                  "criterion": "area-weighted L2 relative change"}))
+    names = [b.name for b in read_centerlines(case / "centerlines.vtp").branches] + ["whole wall"]
+    study = _write_study(case, names)
+    page = build_report(case).read_text()
+    first = page[:page.index("<h2>Details")]
+    assert "could not be built" not in page
+
+    warnings = html.unescape(re.search(r'id="warnings".*?</ul>', first, re.S)[0])
+    assert "only 0.3 of a cardiac cycle" in warnings
+    assert "TAWSS change of the last cycle from the previous (L2, relative) = 0.0234 (criterion < 0.01)" in warnings
+
+    assert _cells(first, "TAWSS of each whole cycle") == [
+        [str(c["cycle"]), f"{c['tawss_mean_pa']:.4g}",
+         *("–" if c[k] is None else f"{100 * c[k]:.3g}" for k in ("relative_change", "mean_change"))] for c in cycles]
+    state = html.unescape(re.search(r'<p id="cycle-state">(.*?)</p>', first)[1])
+    assert "changed by 2.34 % from the previous cycle's" in state
+    assert "the indices average only 0.3 of a cycle" in state and "not periodic against the tolerance of 1 %" in state
+
+    def shown(value, scale=1.0, digits=4):
+        return "–" if value is None else f"{scale * value:.{digits}g}"
+
+    block = re.search(r'<div class="more" id="convergence">.*?</figure></div>', first, re.S)[0]
+    rows = _cells(block, "Grid convergence of the mean TAWSS per branch")
+    expected = [[name, shown(r["phi_fine_to_coarse"][-1]), shown(r["phi_fine_to_coarse"][0]), shown(r["phi_ext21"]),
+                 shown(r["p"]), shown(r["gci_fine21"], 100.0, 3), r["status"]]
+                for name, r in study["branches"]["TAWSS"].items()]
+    assert rows == expected
+    assert [row[-1] for row in rows[:2]] == ["oscillatory", "divergent"] and rows[1][3] == rows[1][5] == "–"
+    assert "GCI of TAWSS at each wall node" in block and block.count("<img") == 1
+    assert "No convergence study" not in page
+    assert "Grid convergence of the mean OSI per branch" in page and "Grid convergence levels" in page

@@ -123,10 +123,16 @@ def cmd_mesh(args: argparse.Namespace) -> int:
     quality = mesh_case(surface, case_dir, layers=p.layers, ratio=p.ratio, thickness=p.thickness_mm or None,
                         thickness_ratio=None if p.thickness_mm else p.thickness_ratio, size=p.size_mm or None,
                         core=p.core, lloyd_iterations=p.lloyd_iterations)
-    elements, core = quality["elements"], quality["core"]["min_dihedral"]
+    elements, floor = quality["elements"], quality["mesh"]["core"]
+    slivers = (f" ({floor['below_floor']} core tetrahedra below the {floor['floor_deg']:g} deg floor, not fixed)"
+               if floor["below_floor"] else "")
+    prisms = quality.get("layer_prisms")
+    layer = (f", layer prisms: smallest base angle {prisms['base_min_angle_deg']['min']:.1f} deg, largest skew "
+             f"{prisms['skew_deg']['max']:.1f} deg, {prisms['degenerate']['count']} degenerate" if prisms else "")
     print(f"mesh written to {case_dir}: {elements['tetrahedra']} tetrahedra ({elements['layer']} in "
-          f"{args.layers} layers, {elements['core']} core), core min dihedral {core['min_deg']:.1f} deg, "
-          f"volume error {quality['volume']['relative_error']:.1e}, {quality['seconds']['total']:.1f} s")
+          f"{args.layers} layers, {elements['core']} core), core min dihedral {floor['worst_deg']:.1f} deg"
+          f"{slivers}{layer}, volume error {quality['volume']['relative_error']:.1e}, "
+          f"{quality['seconds']['total']:.1f} s")
     return 0
 
 

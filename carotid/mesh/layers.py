@@ -83,6 +83,11 @@ class BoundaryLayer:
         Thickness (mm) asked for at each wall vertex.
     fractions : ndarray, shape (N + 1,)
         Depth of each level as a fraction of the thickness.
+    prisms : ndarray, shape (p, 6)
+        The prisms before the split, sub-layer-major (``p = N m`` for m
+        wall triangles): bottom triangle 0, 1, 2 (the outer level, towards
+        the wall) and top 3, 4, 5, vertex i + 3 above i; ``tets[3 j: 3 j + 3]``
+        split prism j.
     inner_triangles : ndarray, shape (s, 3)
         Closed, outward-oriented surface bounding the core: the innermost
         wall copy and the inner cap polygons.
@@ -94,6 +99,7 @@ class BoundaryLayer:
 
     points: np.ndarray
     tets: np.ndarray
+    prisms: np.ndarray
     columns: np.ndarray
     wall_vertices: np.ndarray
     directions: np.ndarray
@@ -320,7 +326,7 @@ def _inner_caps(points, surface, wall_index, innermost, min_angle=15.0):
 
 def build_layers(surface: Surface, *, layers: int = 10, ratio: float = 1.2, thickness: float | None = None,
                  thickness_ratio: float | None = 0.3, max_fraction: float = 0.5, smoothing: int = 10,
-                 grading: int = 3, max_reductions: int = 40) -> BoundaryLayer:
+                 grading: int = 3, max_reductions: int = 40, scale: np.ndarray | None = None) -> BoundaryLayer:
     """Extrude N sub-layers of prisms inward from the wall and split them into tetrahedra.
 
     Parameters
@@ -346,6 +352,10 @@ def build_layers(surface: Surface, *, layers: int = 10, ratio: float = 1.2, thic
         local reduction over a few rings of neighbours.
     max_reductions : int
         Rounds of local thickness reduction before giving up.
+    scale : ndarray, shape (w,), optional
+        Factor (<= 1) on the thickness of each wall vertex (in
+        ``np.unique`` order of the wall vertices), applied before grading;
+        the mesher thins the layer where the core it leaves is too thin.
 
     Returns
     -------
@@ -382,7 +392,7 @@ def build_layers(surface: Surface, *, layers: int = 10, ratio: float = 1.2, thic
         warnings.warn(f"boundary layer reduced where it is thicker than {max_fraction:g} x the local radius "
                       f"({int(np.sum(requested > limit))} of {wall.size} wall vertices, down to "
                       f"{limit.min():.3g} mm)", stacklevel=2)
-    total = np.minimum(requested, limit)
+    total = np.minimum(requested, limit) * (1.0 if scale is None else scale)
     degree = np.asarray(adjacency.sum(axis=1)).ravel()
     for _ in range(grading):  # no vertex much thicker than its neighbourhood
         total = np.minimum(total, (total + adjacency @ total) / (1.0 + degree))
@@ -407,7 +417,7 @@ def build_layers(surface: Surface, *, layers: int = 10, ratio: float = 1.2, thic
     all_points[:n] = _cap_follow(points, surface, wall_index, all_points[columns[-1]])
     all_points, inner_caps, inner_cap_labels = _inner_caps(all_points, surface, wall_index, columns[-1])
     inner = np.vstack([columns[-1][local_wall], inner_caps])
-    return BoundaryLayer(points=all_points, tets=tets, columns=columns, wall_vertices=wall, directions=directions,
+    return BoundaryLayer(points=all_points, tets=tets, prisms=prisms, columns=columns, wall_vertices=wall, directions=directions,
                          thickness=total, requested=requested, fractions=fractions, inner_triangles=inner,
                          inner_labels=np.concatenate([labels[labels == WALL], inner_cap_labels]),
                          local_radius=radius)

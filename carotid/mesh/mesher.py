@@ -11,12 +11,25 @@ from carotid.errors import CarotidError
 from carotid.mesh.boundary import LABELS, WALL, Surface, check_surface, signed_volume
 from carotid.mesh.core import boundary_faces, face_keys, mesh_core
 from carotid.mesh.layers import BoundaryLayer, build_layers, tet_volumes
-from carotid.mesh.quality import (angle_summary, extreme_dihedrals, histogram, min_dihedral, radius_ratio,
-                                  walk_layers)
+from carotid.mesh.quality import (angle_summary, distribution, extreme_dihedrals, histogram, min_dihedral,
+                                  prism_measures, radius_ratio, walk_layers)
 from carotid.mesh.smooth import lloyd_smooth
 
 LAYER, CORE, BOUNDARY = 0, 1, -1
 """Values of the ``Region`` cell array: layer and core tetrahedra, boundary triangles."""
+
+CORE_MIN_DIHEDRAL = 5.0
+"""Stated floor (degrees) of the smallest dihedral angle of a core tetrahedron.  gmsh's HXT with its
+optimiser keeps every core element of a well-separated inner surface above ~14 degrees; a core element
+below 5 degrees spans a place where the layer's inner surface comes too close to itself (a crease, a
+thin passage), whose vertices no optimiser may move, and such slivers make the finite-element
+stiffness ill-conditioned.  :func:`build_mesh` thins the layer there until none is left."""
+
+CORE_REPAIR_ROUNDS, THINNING = 6, 0.7
+"""Rounds of local layer thinning against core slivers, and the thickness factor of each round."""
+
+DEGENERATE_PRISM = 0.1
+"""A prism lower than this fraction of its requested height counts as degenerate in the report."""
 
 
 def median_edge(surface: Surface) -> float:
@@ -108,9 +121,45 @@ def walked_profile(points: np.ndarray, tets: np.ndarray, wall_faces: np.ndarray,
             "growth_ratio_abs_error": {"mean": float(np.nanmean(growth)), "max": float(np.nanmax(growth))}}
 
 
+def prism_quality(points: np.ndarray, layer: BoundaryLayer) -> dict:
+    """Quality of the layer judged by its prisms (:func:`carotid.mesh.quality.prism_measures`).
+
+    The requested height of a prism is the mean over its three columns of
+    the requested thickness times its sub-layer's fraction of it, so
+    thickness reductions show as height ratios below 1.
+
+    Returns
+    -------
+    dict
+        ``count``, distributions (min / p1 / median / p99 / max) of the base
+        triangle angles, skew (degrees), height (mm) and height ratio, and
+        ``degenerate``: the number of prisms lower than ``DEGENERATE_PRISM``
+        times their requested height and the smallest height ratio.
+    """
+    n_layers = len(layer.fractions) - 1
+    per_layer = len(layer.prisms) // n_layers
+    wall_index = np.full(len(points), -1)
+    wall_index[layer.columns] = np.arange(layer.columns.shape[1])[None, :]
+    share = np.repeat(np.diff(layer.fractions), per_layer)
+    requested = layer.requested[wall_index[layer.prisms[:, :3]]].mean(axis=1) * share
+    measures = prism_measures(points, layer.prisms, requested)
+    low = measures["height_ratio"] < DEGENERATE_PRISM
+    return {"count": int(len(layer.prisms)),
+            **{name: distribution(values) for name, values in measures.items()},
+            "degenerate": {"height_ratio_below": DEGENERATE_PRISM, "count": int(low.sum())}}
+
+
 def mesh_quality(points: np.ndarray, tets: np.ndarray, region: np.ndarray, n_boundary: dict, enclosed: float,
-                 layer: dict | None = None) -> dict:
-    """The quality report written to ``mesh_quality.json`` (see :func:`build_mesh`)."""
+                 layer: dict | None = None, prisms: dict | None = None) -> dict:
+    """The quality report written to ``mesh_quality.json`` (see :func:`build_mesh`).
+
+    ``mesh`` summarises the whole mesh: the smallest dihedral angle of all
+    tetrahedra, the core's against ``CORE_MIN_DIHEDRAL`` (count and worst
+    of the core elements below it) and the degenerate prisms.  ``layer``
+    holds the dihedral angles of the split-prism tetrahedra (flat by
+    construction in a thin layer: the prisms in ``layer_prisms`` are the
+    measure of the layer), ``core`` those of the core tetrahedra.
+    """
     angles = min_dihedral(points, tets)
     vol = tet_volumes(points, tets)
     report = {"elements": {"tetrahedra": int(len(tets)), "layer": int(np.sum(region == LAYER)),
@@ -120,16 +169,56 @@ def mesh_quality(points: np.ndarray, tets: np.ndarray, region: np.ndarray, n_bou
         sel = region == code
         if sel.any():
             dihedral_max = extreme_dihedrals(points, tets[sel])[1]
-            report[name] = {"min_dihedral": angle_summary(angles[sel]),
+            report[name] = {"elements": "split-prism tetrahedra" if code == LAYER else "core tetrahedra",
+                            "min_dihedral": angle_summary(angles[sel]),
                             "max_dihedral_deg": float(dihedral_max.max()),
                             "radius_ratio_histogram": histogram(radius_ratio(points, tets[sel]),
                                                                 np.linspace(0.0, 1.0, 11))}
     report["volume"] = {"mesh_mm3": float(vol.sum()), "surface_mm3": enclosed,
                         "relative_error": float(abs(vol.sum() - enclosed) / enclosed),
                         "min_tet_mm3": float(vol.min())}
+    core_angles = angles[region == CORE]
+    below = core_angles < CORE_MIN_DIHEDRAL
+    report["mesh"] = {"min_dihedral_deg": float(angles.min()),
+                      "core": {"floor_deg": CORE_MIN_DIHEDRAL, "below_floor": int(below.sum()),
+                               "worst_deg": float(core_angles.min()) if core_angles.size else None},
+                      "layer_prisms_degenerate": prisms["degenerate"]["count"] if prisms is not None else 0}
     if layer is not None:
         report["boundary_layer"] = layer
+    if prisms is not None:
+        report["layer_prisms"] = prisms
     return report
+
+
+def _layer_and_core(surf: Surface, scale: np.ndarray, clock: dict, *, layers: int, ratio: float,
+                    thickness: float | None, thickness_ratio: float | None, size: float, core: str,
+                    lloyd_iterations: int) -> tuple[BoundaryLayer | None, np.ndarray, np.ndarray, dict, dict]:
+    """One pass of :func:`build_mesh`: the layer (thickness times ``scale``), the core inside it, Lloyd smoothing.
+
+    Returns the layer (None without one), all points (mm), the global core
+    tetrahedra, Lloyd's report and ``clock`` with the end times of the
+    ``layers``, ``core`` and ``lloyd`` steps.
+    """
+    if layers > 0:
+        layer = build_layers(surf, layers=layers, ratio=ratio, thickness=thickness, thickness_ratio=thickness_ratio,
+                             scale=scale)
+        points, inner = layer.points, layer.inner_triangles
+    else:
+        layer, points, inner = None, surf.points, surf.triangles
+    clock["layers"] = time.perf_counter()
+    used = np.unique(inner)
+    local = np.full(len(points), -1)
+    local[used] = np.arange(used.size)
+    nodes, core_tets = mesh_core(points[used], local[inner], size, core)
+    to_global = np.concatenate([used, len(points) + np.arange(len(nodes) - used.size)])
+    points = np.vstack([points, nodes[used.size:]])
+    core_tets = to_global[core_tets]
+    clock["core"] = time.perf_counter()
+    free = np.zeros(len(points), dtype=bool)
+    free[len(points) - (len(nodes) - used.size):] = True
+    points, lloyd = lloyd_smooth(points, core_tets, free, iterations=lloyd_iterations)
+    clock["lloyd"] = time.perf_counter()
+    return layer, points, core_tets, lloyd, clock
 
 
 def build_mesh(surface: pv.PolyData, *, layers: int = 10, ratio: float = 1.2, thickness: float | None = None,
@@ -174,29 +263,30 @@ def build_mesh(surface: pv.PolyData, *, layers: int = 10, ratio: float = 1.2, th
     size = median_edge(surf) if size is None else float(size)
     if size <= 0:
         raise CarotidError("the element size must be positive")
-    if layers > 0:
-        layer = build_layers(surf, layers=layers, ratio=ratio, thickness=thickness, thickness_ratio=thickness_ratio)
-        points, layer_tets, inner = layer.points, layer.tets, layer.inner_triangles
-    else:
-        layer, points, layer_tets, inner = None, surf.points, np.zeros((0, 4), np.int64), surf.triangles
-    clock["layers"] = time.perf_counter()
-    used = np.unique(inner)
-    local = np.full(len(points), -1)
-    local[used] = np.arange(used.size)
-    nodes, core_tets = mesh_core(points[used], local[inner], size, core)
-    to_global = np.concatenate([used, len(points) + np.arange(len(nodes) - used.size)])
-    points = np.vstack([points, nodes[used.size:]])
-    core_tets = to_global[core_tets]
-    clock["core"] = time.perf_counter()
-    free = np.zeros(len(points), dtype=bool)
-    free[len(points) - (len(nodes) - used.size):] = True
-    points, lloyd = lloyd_smooth(points, core_tets, free, iterations=lloyd_iterations)
-    clock["lloyd"] = time.perf_counter()
+    scale = np.ones(np.unique(surf.triangles[surf.labels == WALL]).size)
+    for repair in range(CORE_REPAIR_ROUNDS + 1):
+        layer, points, core_tets, lloyd, clock = _layer_and_core(surf, scale, clock, layers=layers, ratio=ratio,
+                                                                 thickness=thickness,
+                                                                 thickness_ratio=thickness_ratio, size=size,
+                                                                 core=core, lloyd_iterations=lloyd_iterations)
+        sliver = core_tets[min_dihedral(points, core_tets) < CORE_MIN_DIHEDRAL]
+        wall_index = np.full(len(points), -1)
+        if layer is not None:
+            wall_index[layer.columns[-1]] = np.arange(layer.columns.shape[1])
+        touched = np.unique(wall_index[sliver])
+        touched = touched[touched >= 0]
+        if touched.size == 0 or repair == CORE_REPAIR_ROUNDS:
+            break
+        scale[touched] *= THINNING
+    layer_tets = layer.tets if layer is not None else np.zeros((0, 4), np.int64)
     tets = np.vstack([layer_tets, core_tets])
     region = np.r_[np.full(len(layer_tets), LAYER), np.full(len(core_tets), CORE)]
     faces = boundary_faces(tets)
     labels = _label_boundary(faces, surf, _vertex_caps(surf, len(points), layer))
     profile = layer_profile(points, layer, ratio) if layer is not None else None
+    prisms = prism_quality(points, layer) if layer is not None else None
+    if profile is not None:
+        profile["thinned_against_core_slivers"] = {"rounds": repair, "wall_vertices": int(np.sum(scale < 1.0))}
     points, tets, faces = _compact(points, tets, faces)
     if profile is not None:
         profile["read_back_from_mesh"] = walked_profile(points, tets, faces[labels == WALL], layer, ratio)
@@ -205,7 +295,7 @@ def build_mesh(surface: pv.PolyData, *, layers: int = 10, ratio: float = 1.2, th
     mesh.cell_data["Region"] = np.r_[region, np.full(len(faces), BOUNDARY)].astype(np.int32)
     lab, count = np.unique(labels, return_counts=True)
     quality = mesh_quality(points, tets, region, {int(k): int(c) for k, c in zip(lab, count)},
-                           signed_volume(surf.points, surf.triangles), profile)
+                           signed_volume(surf.points, surf.triangles), profile, prisms)
     quality["parameters"] = {"layers": layers, "ratio": ratio, "thickness_mm": thickness,
                              "thickness_ratio": None if thickness is not None else thickness_ratio,
                              "size_mm": size, "core": core, "lloyd_iterations": lloyd_iterations}

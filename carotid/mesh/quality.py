@@ -98,6 +98,62 @@ def angle_summary(min_angles: np.ndarray) -> dict:
             "fraction_ge_20deg": float(np.mean(min_angles >= 20.0))}
 
 
+def distribution(values: np.ndarray) -> dict:
+    """Minimum, 1st percentile, median, 99th percentile and maximum of ``values`` as a JSON-ready dict."""
+    if values.size == 0:
+        return {}
+    q = np.percentile(values, [0.0, 1.0, 50.0, 99.0, 100.0])
+    return dict(zip(("min", "p1", "median", "p99", "max"), q.astype(float).tolist()))
+
+
+def prism_measures(points: np.ndarray, prisms: np.ndarray, requested_height: np.ndarray) -> dict:
+    """Shape measures of (anisotropic) boundary-layer prisms, each an array of shape (p,).
+
+    A thin prism is a good element when its triangles are good and its
+    side edges stand on them, whatever its aspect ratio; its split
+    tetrahedra are then flat by construction, so the prism is judged
+    instead.  With n the unit normal of the bottom triangle (towards the
+    top) and e_i = x_{i+3} - x_i its side edges:
+
+    * ``base_min_angle_deg`` / ``base_max_angle_deg``: smallest and largest
+      angle (degrees) of the bottom and top triangles together;
+    * ``skew_deg``: angle (degrees) between the mean side edge and n, 0 for
+      a right prism (the extrusion leans from the base normal by this much);
+    * ``height_mm``: mean of e_i . n;
+    * ``height_ratio``: ``height_mm`` over ``requested_height``, 1 where the
+      sub-layer has its requested height, near 0 where the layer was thinned
+      to almost nothing.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+        Vertex coordinates (mm).
+    prisms : ndarray, shape (p, 6)
+        Bottom triangle 0, 1, 2 (counter-clockwise seen from the top), top
+        3, 4, 5 with i + 3 above i.
+    requested_height : ndarray, shape (p,)
+        Requested height (mm) of each prism.
+
+    Returns
+    -------
+    dict of ndarray
+    """
+    x = points[prisms]
+    tri = np.concatenate([x[:, :3], x[:, 3:]], axis=1).reshape(-1, 3, 3)  # bottom, top of each prism
+    e = np.roll(tri, -1, axis=1) - tri
+    length = np.linalg.norm(e, axis=2)
+    cos = -np.einsum("mij,mij->mi", e, np.roll(e, 1, axis=1)) / np.maximum(length * np.roll(length, 1, axis=1),
+                                                                          1e-300)
+    angles = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))).reshape(len(prisms), 6)
+    normal = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+    side = (x[:, 3:] - x[:, :3]).mean(axis=1)
+    height = np.einsum("ij,ij->i", side, normal)
+    skew = np.degrees(np.arccos(np.clip(height / np.maximum(np.linalg.norm(side, axis=1), 1e-300), -1.0, 1.0)))
+    return {"base_min_angle_deg": angles.min(axis=1), "base_max_angle_deg": angles.max(axis=1),
+            "skew_deg": skew, "height_mm": height, "height_ratio": height / requested_height}
+
+
 def histogram(values: np.ndarray, bins: np.ndarray) -> dict:
     """Counts of ``values`` in ``bins`` as a JSON-ready dict."""
     counts, edges = np.histogram(values, bins=bins)

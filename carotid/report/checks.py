@@ -24,7 +24,6 @@ MIN_DIHEDRAL_CORE_DEG = 10.0
 MIN_DIHEDRAL_LAYER_DEG = 3.0
 MIN_SURFACE_ANGLE_DEG = 15.0
 MAX_SPLIT_ERROR = 0.01  # absolute error of an outlet's flow fraction
-MAX_PERIODICITY_ERROR = 0.01  # cycle-to-cycle change of the pressure drop, fraction of its range
 # Outputs that later stages rewrite by design (the surface stage adds the caps to geometry.json; the report
 # is rebuilt at will): their recorded hashes say nothing about staleness.
 AMENDED = ("geometry.json", "report.html")
@@ -87,7 +86,8 @@ def quality_checks(segmentation: dict, surface: dict, mesh: dict, flow: dict) ->
     Returns
     -------
     list of Check
-        Criteria whose quantity is recorded; absent quantities are not judged.
+        Criteria whose quantity is recorded; absent quantities are not judged, nor the cycle-to-cycle TAWSS
+        change of a flow run without a periodicity tolerance (``periodic.status`` "not assessed").
     """
     rows = [
         ("segmentation", "level set converged", _get(segmentation, "converged"), "yes", lambda v: bool(v)),
@@ -112,33 +112,12 @@ def quality_checks(segmentation: dict, surface: dict, mesh: dict, flow: dict) ->
         if error is not None:
             checks.append(Check("flow", f"outlet {label}: flow-split error, largest", error,
                                 f"<= {MAX_SPLIT_ERROR:g}", error <= MAX_SPLIT_ERROR))
+    periodic = flow.get("periodic") or {}
+    if periodic.get("status") in ("periodic", "not periodic"):  # "not assessed": no tolerance or under two cycles
+        checks.append(Check("flow", "TAWSS change of the last cycle from the previous (L2, relative)",
+                            periodic["last_relative_change"], f"< {periodic['tolerance']:g}",
+                            periodic["status"] == "periodic"))
     return checks
-
-
-def periodicity_error(times: np.ndarray, values: np.ndarray, period: float) -> float | None:
-    """Largest change of a signal between its last two cycles, as a fraction of its range in the last one.
-
-    Parameters
-    ----------
-    times : ndarray, shape (n,)
-        Output times, s, increasing.
-    values : ndarray, shape (n,)
-        The signal (e.g. the pressure drop, Pa).
-    period : float
-        Cycle length, s.
-
-    Returns
-    -------
-    float or None
-        ``max |v(t) - v(t - T)| / (max v - min v)`` over the last cycle; None when under two cycles ran.
-    """
-    end = times[-1]
-    if end - times[0] < 2.0 * period * (1 - 1e-9):
-        return None
-    last = times >= end - period
-    previous = np.interp(times[last] - period, times, values)
-    span = float(np.ptp(values[last])) or 1.0
-    return float(np.max(np.abs(values[last] - previous)) / span)
 
 
 def stale_warnings(case_dir: Path, record: dict, geometry: dict, segmentation: dict, mesh_quality: dict,

@@ -2,11 +2,12 @@
 
 The first page is the clinical summary: the stenosis verdict, the diameter profile along the CCA and
 ICA, the wall shear stress maps, the named branches, the wall area exposed to low and oscillating shear
-per branch, the inflow waveform and outlet split, and a warning for every stale, partial or failed
-result.  The detail of each stage follows.  Each part is built from the files a stage wrote, whatever
-wrote them (``carotid run`` or the per-stage commands); a stage that has not run yields a note instead
-of failing the report.  Pictures are PNG embedded as data URIs, so the file can be mailed or archived
-alone.
+per branch, the inflow waveform and outlet split, the cycle state (the TAWSS change of each cycle from
+the previous one), the grid convergence study of the wall indices (or a note that none was run), and a
+warning for every stale, partial or failed result.  The detail of each stage follows.  Each part is built
+from the files a stage wrote, whatever wrote them (``carotid run`` or the per-stage commands); a stage that
+has not run yields a note instead of failing the report.  Pictures are PNG embedded as data URIs, so the
+file can be mailed or archived alone.
 """
 
 from __future__ import annotations
@@ -21,11 +22,11 @@ import numpy as np
 
 from carotid import __version__
 from carotid.centerline.model import branch_regions
+from carotid.flow.convergence import STATUS
 from carotid.flow.indices import HIGH_OSI, LOW_TAWSS_PA, node_areas
 from carotid.io import atomic_path, read_image
 from carotid.report import figures
-from carotid.report.checks import (MAX_PERIODICITY_ERROR, Check, periodicity_error, quality_checks, read_json,
-                                   stale_warnings, stenosis_category)
+from carotid.report.checks import Check, quality_checks, read_json, stale_warnings, stenosis_category
 
 # Colour-map clipping of the wall maps: the percentile of the values at the top colour (OSI keeps its
 # natural range 0-0.5).
@@ -84,7 +85,7 @@ class Section:
 
 @dataclass
 class Case:
-    """The records of a case folder (each an empty dict when its stage has not run)."""
+    """The records of a case folder (each an empty dict when its stage, or the convergence study, has not run)."""
 
     dir: Path
     record: dict
@@ -93,12 +94,14 @@ class Case:
     surface_quality: dict
     mesh_quality: dict
     flow: dict
+    convergence: dict = field(default_factory=dict)
 
     @classmethod
     def read(cls, case_dir: Path) -> "Case":
         return cls(case_dir, read_json(case_dir / "case.json"), read_json(case_dir / "segmentation" / "report.json"),
                    read_json(case_dir / "geometry.json"), read_json(case_dir / "surface_quality.json"),
-                   read_json(case_dir / "mesh_quality.json"), read_json(case_dir / "flow" / "summary.json"))
+                   read_json(case_dir / "mesh_quality.json"), read_json(case_dir / "flow" / "summary.json"),
+                   read_json(case_dir / "flow" / "convergence.json"))
 
     def cap_names(self) -> dict[int, str]:
         """Cap id (``CellEntityIds`` 2, 3, ...) -> branch name, from ``geometry.json`` or the surface record."""
@@ -225,7 +228,7 @@ def exposure_rows(wall, regions: np.ndarray, names: list[str]) -> list[tuple]:
 
 
 def _flow_series(case: Case) -> dict | None:
-    """Output times (s), inflow and outlet flows (mL/s) and pressure drop (Pa) from the flow checkpoint."""
+    """Output times (s), inflow and outlet flows (mL/s) from the flow checkpoint."""
     from carotid.flow.output import load_checkpoint
 
     path = case.dir / "flow" / "checkpoint.npz"
@@ -236,8 +239,7 @@ def _flow_series(case: Case) -> dict | None:
         return None
     return {"time": np.array([r["time"] for r in records]),
             "inflow": 1e6 * np.array([r["diagnostics"]["inflow"] for r in records]),
-            "outflow": 1e6 * np.array([r["diagnostics"]["outflow"] for r in records]),
-            "dp": np.array([r["diagnostics"]["dp"] for r in records])}
+            "outflow": 1e6 * np.array([r["diagnostics"]["outflow"] for r in records])}
 
 
 def stenosis_location(stenosis: dict) -> str:
@@ -331,10 +333,10 @@ def case_warnings(case: Case) -> list[str]:
               if not c.passed]
     warnings += [f"{c.stage} quality check failed: {c.quantity} = {_value(c.value)} (criterion {c.criterion})."
                  for c in failed]
-    cycles = case.flow.get("cycles")
-    if cycles is not None and cycles < 1.0 - 1e-6:
-        warnings.append(f"The flow ran {cycles:.2g} of a cardiac cycle: the wall indices (TAWSS, OSI, RRT, ECAP) "
-                        "average less than one cycle and are partial.")
+    if case.flow.get("partial"):
+        warnings.append(f"The wall indices (TAWSS, OSI, RRT, ECAP) average only "
+                        f"{case.flow['indices_cycle_fraction']:.2g} of a cardiac cycle: they are partial, not "
+                        "comparable with the indices of a whole cycle.")
     return warnings
 
 
@@ -361,17 +363,13 @@ def summary_html(case: Case) -> str:
         for name, label, cmap in WALL_MAPS:
             if name not in wall.array_names:
                 continue
-            values = np.asarray(wall[name])
-            if name == "OSI":
-                clim, clip = (0.0, 0.5), "full range 0-0.5"
-            else:
-                top_value = float(np.nanpercentile(values, CLIP_PERCENTILE)) or 1.0
-                clim, clip = (0.0, top_value), (f"clipped at the {CLIP_PERCENTILE:g}th percentile, {top_value:.3g}; "
-                                                f"maximum {np.nanmax(values):.3g}")
+            clim, clip = ((0.0, 0.5), "full range 0-0.5") if name == "OSI" else colour_range(np.asarray(wall[name]))
             maps.append(_figure(f"{label}: colour scale {clip}", figures.wall_map(wall, name, label, clim, cmap)))
         parts.append(f'<div class="maps" id="wss-maps">{"".join(maps)}</div>')
     else:
         parts.append('<p class="missing">The flow stage has not run: no wall shear stress maps.</p>')
+    if case.flow:
+        parts.append(convergence_html(case))
 
     left, right = [], []
     branches = read_centerlines(case.dir / "centerlines.vtp").branches \
@@ -415,26 +413,129 @@ def flow_summary_html(case: Case) -> list[str]:
     parts = [_table_html(Table("Outlet flow split (last cycle)", rows,
                                ["outlet", "target (%)", "achieved, mean (%)", "largest error (points of %)"]))]
     series = _flow_series(case)
-    cycles = case.flow.get("cycles", 0.0)
-    period = case.flow.get("time_s", 0.0) / cycles if cycles else 0.0
     if series is not None:
         named = {"inflow (CCA)": (series["time"], series["inflow"])}
         for j, label in enumerate(outlets):
             named[f"outflow {caps.get(int(label), label)}"] = (series["time"], series["outflow"][:, j])
         parts.append(_figure("Inflow waveform and outlet flows as computed",
                              figures.time_series(named, "time (s)", "flow (mL/s)")))
-    error = periodicity_error(series["time"], series["dp"], period) if series is not None and period else None
-    state = (f"{cycles:.2g} cardiac cycle(s) of {period:.3g} s run; the indices average the last "
-             f"{min(cycles, 1.0):.2g} cycle. ")
-    if error is None:
-        state += "Cycle-to-cycle periodicity is not assessed (it needs two cycles or more): the first cycle " \
-                 "includes the start-up transient."
-    else:
-        verdict = "periodic" if error <= MAX_PERIODICITY_ERROR else "not yet periodic"
-        state += (f"The pressure drop changes by {100 * error:.2g} % of its range between the last two cycles: "
-                  f"{verdict}.")
-    parts.append(f"<p>{html.escape(state)}</p>")
+    parts += cycle_state_html(case.flow)
     return parts
+
+
+def colour_range(values: np.ndarray) -> tuple[tuple[float, float], str]:
+    """Colour range of a wall map, 0 to the ``CLIP_PERCENTILE``-th percentile of the finite values, and its
+    caption text.
+
+    Parameters
+    ----------
+    values : ndarray, shape (n,)
+        The mapped values (unit of the map); NaN values are left out.
+
+    Returns
+    -------
+    clim : (float, float)
+        The colour range, unit of ``values``.
+    text : str
+        The clipping value and the maximum, for the caption.
+    """
+    top_value = float(np.nanpercentile(values, CLIP_PERCENTILE)) or 1.0
+    return (0.0, top_value), (f"clipped at the {CLIP_PERCENTILE:g}th percentile, {top_value:.3g}; "
+                              f"maximum {np.nanmax(values):.3g}")
+
+
+def _percent(fraction: float | None) -> str:
+    """A fraction as a percentage to 3 significant digits, or a dash when it is missing."""
+    return "–" if fraction is None else f"{100 * fraction:.3g}"
+
+
+def cycle_state_html(flow: dict) -> list[str]:
+    """The cycle state of ``flow/summary.json``: cycles run, what the indices average and the periodicity.
+
+    The periodicity is the simulate stage's (``periodicity``, ``periodic``): the change of each whole cycle's
+    TAWSS from the previous cycle's, judged against ``--periodic-tol``.
+
+    Returns
+    -------
+    list of str
+        HTML: the per-cycle table (two whole cycles or more) and a paragraph.
+    """
+    cycles = flow.get("cycles", 0.0)
+    period = flow.get("time_s", 0.0) / cycles if cycles else 0.0
+    note = flow.get("indices_note")
+    state = f"{cycles:.2g} cardiac cycle(s) of {period:.3g} s run" + (f"; {note}. " if note else ". ")
+    entries, periodic = flow.get("periodicity") or [], flow.get("periodic") or {}
+    change = periodic.get("last_relative_change")
+    if not periodic:
+        state += "Cycle-to-cycle periodicity is not recorded: summary.json predates it (rerun the simulate stage)."
+    elif change is None:
+        state += (f"{len(entries)} whole cycle(s) run: periodicity is not assessed (it needs two whole cycles or "
+                  "more; the first includes the start-up transient).")
+    else:
+        state += f"The TAWSS of the last cycle changed by {_percent(change)} % from the previous cycle's " \
+                 f"({periodic.get('criterion', '')}): "
+        state += ("not assessed, no tolerance set (--periodic-tol)." if periodic["status"] == "not assessed" else
+                  f"{periodic['status']} against the tolerance of {_percent(periodic['tolerance'])} %.")
+    parts = []
+    if len(entries) >= 2:
+        rows = [(e["cycle"], _value(e["tawss_mean_pa"]), _percent(e["relative_change"]), _percent(e["mean_change"]))
+                for e in entries]
+        parts.append(_table_html(Table("TAWSS of each whole cycle, change from the previous cycle", rows,
+                                       ["cycle", "mean TAWSS (Pa)", "change, L2 (%)", "change of the mean (%)"])))
+    parts.append(f'<p id="cycle-state">{html.escape(state)}</p>')
+    return parts
+
+
+def convergence_table(study: dict, quantity: str, unit: str) -> Table:
+    """Per-branch grid convergence of the area-weighted mean of one wall index (``flow/convergence.json``).
+
+    Parameters
+    ----------
+    study : dict
+        ``flow/convergence.json`` (:func:`carotid.flow.convergence.run_convergence`).
+    quantity : str
+        ``"TAWSS"``, ``"OSI"`` or ``"RRT"``.
+    unit : str
+        Its unit (``"Pa"``, ``"-"``, ``"1/Pa"``).
+
+    Returns
+    -------
+    Table
+        Per branch and the whole wall: the mean on the case mesh (the coarsest level) and on the finest, the
+        Richardson extrapolation, the apparent order, the fine-grid GCI (%) and the convergence status.
+    """
+    sizes = ", ".join(f"{level['h_mm']:.3g}" for level in study["levels"])
+    rows = [(name, _value(row["phi_fine_to_coarse"][-1]), _value(row["phi_fine_to_coarse"][0]),
+             _value(row["phi_ext21"]), _value(row["p"]), _percent(row["gci_fine21"]), row["status"])
+            for name, row in study["branches"][quantity].items()]
+    return Table(f"Grid convergence of the mean {quantity} per branch (Celik et al. 2008; meshes of h = {sizes} mm, "
+                 "finest first; the case mesh is the coarsest)", rows,
+                 ["region", f"case mesh ({unit})", f"finest mesh ({unit})", f"extrapolated ({unit})",
+                  "apparent order", "GCI, finest (%)", "status"])
+
+
+def convergence_html(case: Case) -> str:
+    """The grid convergence study of the first page: the TAWSS table per branch and the per-node GCI map of TAWSS
+    (``flow/convergence.json`` and ``flow/convergence.vtp``), or a note when no study was run."""
+    import pyvista as pv
+
+    if not case.convergence:
+        return ('<p class="missing" id="convergence">No convergence study (carotid simulate --convergence): the '
+                "discretisation error of the wall indices is not estimated.</p>")
+    parts = [_table_html(convergence_table(case.convergence, "TAWSS", "Pa"))]
+    path = case.dir / "flow" / "convergence.vtp"
+    wall = pv.read(path) if path.exists() else None
+    gci = 100.0 * np.asarray(wall["TAWSS_GCI"], dtype=float) if wall is not None else np.array([np.nan])
+    if np.isfinite(gci).any():
+        wall.point_data["TAWSS_GCI_percent"] = gci
+        clim, clip = colour_range(gci)
+        parts.append(_figure(f"GCI of TAWSS at each wall node of the finest mesh (%): colour scale {clip}; grey: no "
+                             "estimate (divergent or indeterminate)",
+                             figures.wall_map(wall, "TAWSS_GCI_percent", "GCI of TAWSS (%)", clim, "magma")))
+    else:
+        parts.append('<p class="missing">No per-node GCI of TAWSS (flow/convergence.vtp missing, or no node '
+                     "converges).</p>")
+    return f'<div class="more" id="convergence"><div>{parts[0]}</div>{parts[1]}</div>'
 
 
 def segmentation_section(case: Case) -> Section:
@@ -532,7 +633,7 @@ def mesh_section(case: Case) -> Section:
 
 
 def flow_section(case: Case) -> Section:
-    """The index statistics and the solver record."""
+    """The index statistics, the grid convergence of OSI and RRT with the study's levels, and the solver record."""
     section = Section("Flow and wall shear stress")
     summary = case.flow
     if not summary:
@@ -543,7 +644,17 @@ def flow_section(case: Case) -> Section:
     section.tables.append(Table("Wall indices over the wall nodes", [
         (f"{name} ({units.get(name, '')})", f"{v['min']:.3g}", f"{v['mean']:.3g}", f"{v['max']:.3g}")
         for name, v in summary.get("indices", {}).items()], ["index", "min", "mean", "max"]))
-    record = {k: v for k, v in summary.items() if k != "indices"}
+    study = case.convergence
+    if study:
+        section.tables += [convergence_table(study, "OSI", "-"), convergence_table(study, "RRT", "1/Pa")]
+        section.tables.append(Table("Grid convergence levels (0 finest)", [
+            (lv["level"], f"{lv['h_mm']:.3g}", lv["tetrahedra"], lv["nodes"], _value(lv["cycles"]),
+             _value(lv["partial"]), lv["periodic"]["status"], _value(lv["seconds"])) for lv in study["levels"]],
+            ["level", "h (mm)", "tetrahedra", "nodes", "cycles", "partial", "periodicity", "seconds (s)"]))
+        section.tables.append(Table("Per-node GCI over the wall (finest mesh)", [
+            (name, _percent(m["median_gci"]), *(_percent(m[status]) for status in STATUS))
+            for name, m in study["map"].items()], ["index", "median GCI (%)", *(f"{s} (% of nodes)" for s in STATUS)]))
+    record = {k: v for k, v in summary.items() if k not in ("indices", "periodicity")}
     record["mass_balance"] = {k: v for k, v in summary.get("mass_balance", {}).items() if k != "outlets"}
     section.tables.append(Table("Solver record", flatten(record)))
     return section
