@@ -396,3 +396,12 @@ def test_retriangulated_inner_caps_and_no_layer_meshes_are_valid(tube, monkeypat
     triangles, labels = split_cells(mesh)[2:]
     surf = check_surface(tube)
     assert coordinate_keys(points, triangles) == coordinate_keys(surf.points, surf.triangles)
+
+
+def test_a_single_sub_layer_meshes_and_reports_no_growth_ratio(tube):
+    mesh, quality = build_mesh(tube, layers=1, thickness=0.4, lloyd_iterations=0)
+    points, tets, region = check_valid(tube, mesh)
+    layer = quality["boundary_layer"]
+    assert layer["layers"] == 1 and layer["growth_ratio"] is None
+    assert layer["first_height_mm"]["max"] == pytest.approx(0.4, rel=0.05)
+    assert np.count_nonzero(region == 0) > 0

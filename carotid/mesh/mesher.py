@@ -85,7 +85,8 @@ def layer_profile(points: np.ndarray, layer: BoundaryLayer, ratio: float) -> dic
         ``layers``, ``first_height_mm`` (mean / min / max), relative error of
         the first height against the requested one (mean / max), measured
         growth ratio (mean / min / max) and its largest deviation from
-        ``ratio``, and the fraction of wall vertices whose thickness was reduced.
+        ``ratio`` (None for a single sub-layer), and the fraction of wall
+        vertices whose thickness was reduced.
     """
     col = points[layer.columns]  # (N + 1, w, 3)
     heights = np.einsum("kwi,wi->kw", np.diff(col, axis=0), layer.directions)
@@ -96,8 +97,9 @@ def layer_profile(points: np.ndarray, layer: BoundaryLayer, ratio: float) -> dic
             "first_height_mm": {"mean": float(heights[0].mean()), "min": float(heights[0].min()),
                                 "max": float(heights[0].max())},
             "first_height_rel_error": {"mean": float(first_error.mean()), "max": float(first_error.max())},
-            "growth_ratio": {"mean": float(growth.mean()), "min": float(growth.min()), "max": float(growth.max()),
-                             "max_abs_error": float(np.abs(growth - ratio).max())},
+            "growth_ratio": None if growth.size == 0 else  # one sub-layer: no ratio to measure
+            {"mean": float(growth.mean()), "min": float(growth.min()), "max": float(growth.max()),
+             "max_abs_error": float(np.abs(growth - ratio).max())},
             "thickness_mm": {"mean": float(layer.thickness.mean()), "min": float(layer.thickness.min()),
                              "max": float(layer.thickness.max())},
             "reduced_fraction": float(np.mean(layer.thickness < 0.99 * layer.requested))}
@@ -118,7 +120,8 @@ def walked_profile(points: np.ndarray, tets: np.ndarray, wall_faces: np.ndarray,
     growth = np.abs(heights[1:] / heights[:-1] - ratio)
     return {"layers_found": {"min": int(found.min()), "median": float(np.median(found))},
             "first_height_rel_error": {"mean": float(np.nanmean(first)), "max": float(np.nanmax(first))},
-            "growth_ratio_abs_error": {"mean": float(np.nanmean(growth)), "max": float(np.nanmax(growth))}}
+            "growth_ratio_abs_error": None if growth.size == 0 else
+            {"mean": float(np.nanmean(growth)), "max": float(np.nanmax(growth))}}
 
 
 def prism_quality(points: np.ndarray, layer: BoundaryLayer) -> dict:

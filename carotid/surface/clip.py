@@ -177,7 +177,7 @@ def planar_cap(points: np.ndarray, loop: np.ndarray, normal: np.ndarray) -> tupl
     return np.vstack(new_pts), faces
 
 
-def _extend(points: np.ndarray, loop: np.ndarray, normal: np.ndarray, length: float):
+def extrude_rim(points: np.ndarray, loop: np.ndarray, normal: np.ndarray, length: float):
     """Extrude a rim along ``normal`` by ``length`` mm; returns ``(points, wall faces, new loop)``."""
     a, b = loop, np.roll(loop, -1)
     edge = float(np.linalg.norm(points[b] - points[a], axis=1).mean())
@@ -242,7 +242,7 @@ def clip_surface(surface: pv.PolyData, centerlines: Centerlines, *, inset_radii:
                                "(is the branch too short or bent near its end?)")
         loop = loops[mine[0]]
         if flow_extension_radii > 0:
-            points, ext, loop = _extend(points, loop, p.normal, flow_extension_radii * p.radius)
+            points, ext, loop = extrude_rim(points, loop, p.normal, flow_extension_radii * p.radius)
             all_faces.append(ext)
             labels += [WALL] * len(ext)
         interior, cap = planar_cap(points, loop, p.normal)

@@ -6,7 +6,9 @@ so that inside and outside are defined.  ``levelset_from_surface`` samples the s
 regular grid: the sign from VTK's scan conversion (vtkPolyDataToImageStencil through pyvista), the
 distance exact (to the nearest triangle, ``carotid.surface.project``) near the surface and from
 scipy's Euclidean distance transform further away, which the centerline stage then
-treats like a segmentation's level set.
+treats like a segmentation's level set.  ``label_caps`` labels the surface's own flat caps
+(``carotid.mesh.boundary.label_flat_caps``) by the vessel ends of its centerlines, so that the surface
+stage can keep them instead of clipping the ends again.
 """
 
 from __future__ import annotations
@@ -16,11 +18,14 @@ from pathlib import Path
 import numpy as np
 import pyvista as pv
 from scipy import ndimage
+from scipy.optimize import linear_sum_assignment
 
+from carotid.centerline.model import Centerlines
 from carotid.errors import CarotidError
 from carotid.io import Volume
+from carotid.mesh.boundary import INLET, label_flat_caps
 from carotid.surface.clip import planar_cap
-from carotid.surface.mesh import boundary_loops, from_polydata, largest_component, signed_volume, to_polydata
+from carotid.surface.mesh import WALL, boundary_loops, from_polydata, largest_component, signed_volume, to_polydata
 from carotid.surface.project import TriangleProjector
 from carotid.surface.quality import manifold_report, self_intersections
 
@@ -155,3 +160,45 @@ def levelset_from_surface(surface: pv.PolyData, spacing: float = 0.25, margin: f
     dist = np.linalg.norm(TriangleProjector(points, faces)(near)[0] - near, axis=1)
     phi[band] = np.where(inside[band], -dist, dist)
     return Volume(np.clip(phi, -10.0, 10.0).astype(np.float32), (spacing,) * 3, tuple(float(x) for x in lo))
+
+
+def label_caps(surface: pv.PolyData, centerlines: Centerlines) -> pv.PolyData:
+    """Label the flat end caps of a closed surface by the vessel end each one closes.
+
+    The caps are found by ``carotid.mesh.boundary.label_flat_caps`` and matched one to one to the ends
+    of the centerlines (least total distance from cap centroids to end points), so that the cap of
+    ``centerlines.ends()[i]`` gets ``CellEntityIds`` ``2 + i``: the CCA inlet 2, the outlets 3, 4, ...
+
+    Parameters
+    ----------
+    surface : pyvista.PolyData
+        Closed, outward-oriented triangle surface in mm (e.g. from ``load_external_surface``).
+    centerlines : Centerlines
+        Centerlines of the same lumen.
+
+    Returns
+    -------
+    pyvista.PolyData
+        The surface with ``CellEntityIds`` (wall 1, caps 2, 3, ...).
+
+    Raises
+    ------
+    CarotidError
+        When the surface has no flat end caps, or not one per vessel end.
+    """
+    try:
+        labelled = label_flat_caps(surface)
+    except CarotidError:
+        raise CarotidError("the surface has no flat end caps to keep: pass --reclip to cut its ends") from None
+    points, faces, labels = from_polydata(labelled)
+    ends = centerlines.ends()
+    caps = np.unique(labels[labels != WALL])
+    if len(caps) != len(ends):
+        raise CarotidError(f"the surface has {len(caps)} flat end caps for {len(ends)} vessel ends "
+                           f"({', '.join(e[0] for e in ends)}): pass --reclip to cut its ends")
+    centroids = np.array([points[np.unique(faces[labels == cap])].mean(axis=0) for cap in caps])
+    tips = np.array([point for _, point, _, _ in ends])
+    rows, cols = linear_sum_assignment(np.linalg.norm(centroids[:, None] - tips[None], axis=2))
+    relabel = np.full(labels.max() + 1, WALL, np.int32)
+    relabel[caps[rows]] = INLET + cols
+    return to_polydata(points, faces, relabel[labels])

@@ -1,19 +1,23 @@
-"""The surface stage end to end: level set + centerlines -> clipped, smoothed, remeshed, labelled surface."""
+"""The surface stage end to end: level set + centerlines -> clipped, smoothed, remeshed, labelled surface;
+or an external closed surface + its centerlines -> the same surface remeshed, its own flat caps labelled and kept."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
 
+import numpy as np
 import pyvista as pv
 
 from carotid.centerline.model import Centerlines
 from carotid.errors import CarotidError
 from carotid.io import Volume, atomic_path, write_json
-from carotid.surface.clip import cap_info, clip_surface
+from carotid.surface.clip import cap_info, clip_surface, extrude_rim, planar_cap
+from carotid.surface.external import label_caps
 from carotid.surface.extract import extract_surface
+from carotid.surface.mesh import WALL, boundary_loops, compact, from_polydata, to_polydata
 from carotid.surface.quality import surface_quality
-from carotid.surface.remesh import radius_size_field, remesh
+from carotid.surface.remesh import SizeField, radius_size_field, remesh
 from carotid.surface.smooth import taubin_smooth
 
 
@@ -48,20 +52,87 @@ def build_surface(levelset: Volume, centerlines: Centerlines, *, target_edge_mm:
     quality : dict
         ``surface_quality`` of the result.
     """
-    if edge_radius_ratio is not None:
-        if not edge_radius_ratio > 0:
-            raise CarotidError(f"edge/radius ratio {edge_radius_ratio} must be positive")
-        target = radius_size_field(centerlines, edge_radius_ratio, *edge_bounds_mm)
-    elif target_edge_mm is not None and target_edge_mm > 0:
-        target = float(target_edge_mm)
-    else:
-        raise CarotidError(f"target edge length {target_edge_mm} mm must be positive")
+    target = _size_target(centerlines, target_edge_mm, edge_radius_ratio, edge_bounds_mm)
     surface = extract_surface(levelset)
     clipped, caps = clip_surface(surface, centerlines, inset_radii=inset_radii,
                                  flow_extension_radii=flow_extension_radii, domain=levelset)
     smoothed = taubin_smooth(clipped, smoothing_iterations)
-    final = remesh(smoothed, target, iterations=remesh_iterations)
-    caps = cap_info(final, [c["name"] for c in caps])
+    return _finish(smoothed, [c["name"] for c in caps], target, remesh_iterations)
+
+
+def build_surface_keeping_caps(surface: pv.PolyData, centerlines: Centerlines, *,
+                               target_edge_mm: float | None = 0.3, edge_radius_ratio: float | None = None,
+                               edge_bounds_mm: tuple[float, float] = (0.15, 1.0), flow_extension_radii: float = 0.0,
+                               remesh_iterations: int = 12) -> tuple[pv.PolyData, list[dict], dict]:
+    """Isotropic remeshing of a closed surface that keeps its own flat caps (no clipping, no smoothing).
+
+    Parameters
+    ----------
+    surface : pyvista.PolyData
+        Closed, outward-oriented surface in mm with flat end caps (e.g. from ``load_external_surface``).
+    centerlines : Centerlines
+        Centerlines of the same lumen: they name the caps (see ``carotid.surface.external.label_caps``).
+    target_edge_mm, edge_radius_ratio, edge_bounds_mm
+        See ``build_surface``.
+    remesh_iterations : int
+        Remeshing rounds: more than ``build_surface``'s, as another tool's wall may have needles and
+        creases that a smoothed marching-cubes surface has not.
+    flow_extension_radii : float
+        Length of the cylindrical flow extension at each cap, in equivalent radii of the cap (0: none);
+        the cap moves along its normal to the end of its extension.
+
+    Returns
+    -------
+    surface : pyvista.PolyData
+        Labelled (``CellEntityIds``) closed surface in mm, its wall on the input's wall and its caps in the
+        planes of the input's caps (moved by the flow extensions).
+    caps : list of dict
+        As ``build_surface``.
+    quality : dict
+        ``surface_quality`` of the result.
+    """
+    target = _size_target(centerlines, target_edge_mm, edge_radius_ratio, edge_bounds_mm)
+    labelled = label_caps(surface, centerlines)
+    if flow_extension_radii > 0:
+        labelled = _extend_caps(labelled, flow_extension_radii)
+    return _finish(labelled, [name for name, _, _, _ in centerlines.ends()], target, remesh_iterations)
+
+
+def _extend_caps(surface: pv.PolyData, radii: float) -> pv.PolyData:
+    """Replace every cap of a labelled surface by a flow extension of ``radii`` cap radii and a new flat cap."""
+    points, faces, labels = from_polydata(surface)
+    wall = faces[labels == WALL]
+    loops = boundary_loops(wall)
+    all_faces, all_labels = [wall], [labels[labels == WALL]]
+    for cap in cap_info(surface, [""] * (labels.max() - 1)):  # loop over caps, a handful
+        loop = next(lp for lp in loops if np.isin(lp, faces[labels == cap["id"]]).all())
+        normal = np.asarray(cap["normal"])
+        points, ext, loop = extrude_rim(points, loop, normal, radii * cap["equivalent_radius"])
+        interior, disc = planar_cap(points, loop, normal)
+        points = np.vstack([points, interior])
+        all_faces += [ext, disc]
+        all_labels += [np.full(len(ext), WALL), np.full(len(disc), cap["id"])]
+    points, faces = compact(points, np.concatenate(all_faces))
+    return to_polydata(points, faces, np.concatenate(all_labels))
+
+
+def _size_target(centerlines: Centerlines, target_edge_mm: float | None, edge_radius_ratio: float | None,
+                 edge_bounds_mm: tuple[float, float]) -> SizeField:
+    """The remeshing target of ``build_surface``: a global edge length or a radius-based size field."""
+    if edge_radius_ratio is not None:
+        if not edge_radius_ratio > 0:
+            raise CarotidError(f"edge/radius ratio {edge_radius_ratio} must be positive")
+        return radius_size_field(centerlines, edge_radius_ratio, *edge_bounds_mm)
+    if target_edge_mm is not None and target_edge_mm > 0:
+        return float(target_edge_mm)
+    raise CarotidError(f"target edge length {target_edge_mm} mm must be positive")
+
+
+def _finish(surface: pv.PolyData, names: list[str], target: SizeField, iterations: int
+            ) -> tuple[pv.PolyData, list[dict], dict]:
+    """Remesh a labelled closed surface; returns it with its ``cap_info`` and ``surface_quality``."""
+    final = remesh(surface, target, iterations=iterations)
+    caps = cap_info(final, names)
     quality = surface_quality(final, target if isinstance(target, float) else None)
     quality["caps"] = caps
     return final, caps, quality
