@@ -26,12 +26,13 @@ def run(spec: TubeSpec, pressure: str, steps: int, viscous: str = "explicit") ->
     import time
 
     from carotid.flow.cbs import CBSSolver
-    from carotid.flow.verify import NU, developed_start, steady_waveform, tube_mesh
+    from carotid.flow.verify import NU, developed_start, tube_mesh
+    from carotid.flow.waveform import constant_waveform
     from carotid.flow.womersley import inlet_profile
 
     mesh = tube_mesh(spec)
     nodes, pts, tris = mesh.face_patch(2)
-    profile = inlet_profile(pts, tris, mesh.face_normal(2), steady_waveform(6e-6), NU, 0)
+    profile = inlet_profile(pts, tris, mesh.face_normal(2), constant_waveform(6e-6), NU, 0)
     t0 = time.perf_counter()
     solver = CBSSolver(mesh, profile.velocity, NU, pressure=pressure, safety=0.8, viscous=viscous)
     setup = time.perf_counter() - t0
