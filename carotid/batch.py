@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import sys
 import time
 from dataclasses import dataclass
@@ -31,7 +30,7 @@ import numpy as np
 from carotid.config import Config
 from carotid.errors import CarotidError, check_ranges
 from carotid.flow.indices import HIGH_OSI, LOW_TAWSS_PA, area_fraction, node_areas
-from carotid.io import atomic_path, write_json
+from carotid.io import atomic_path, read_json, write_json
 from carotid.pipeline import PROGRESS_SECONDS, STAGES, format_duration, read_case, run_stage
 
 BATCH_RANGES = {"workers": (1, 256), "retries": (0, 100)}  # LocalCluster processes; retries of a stage
@@ -136,13 +135,6 @@ def _stage_task(case: Case, case_dir: str, stage_name: str, previous: dict | Non
     return {"status": "ok", "log": log}
 
 
-def _read_json(path: Path) -> dict:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError):
-        return {}
-
-
 def _wall_area_fractions(path: Path) -> tuple:
     """Fractions of the wall area (``indices.vtp``) with OSI above ``HIGH_OSI`` and with TAWSS below
     ``LOW_TAWSS_PA``; ``("", "")`` when the flow stage has not run."""
@@ -160,14 +152,14 @@ def case_summary(case: Case, case_dir: Path, outcome: dict) -> dict:
     """One ``cohort.csv`` row from a case's outcome and the result files it has."""
     record = read_case(case_dir) if (case_dir / "case.json").exists() else {"stages": {}}
     seconds = {name: stage["seconds"] for name, stage in record["stages"].items()}
-    segmentation = _read_json(case_dir / "segmentation" / "report.json")
-    geometry = _read_json(case_dir / "geometry.json")
+    segmentation = read_json(case_dir / "segmentation" / "report.json")
+    geometry = read_json(case_dir / "geometry.json")
     stenosis = (geometry.get("stenosis") or {}) if geometry.get("bifurcation_mm") else {}
-    mesh = _read_json(case_dir / "mesh_quality.json")
-    flow = _read_json(case_dir / "flow" / "summary.json")
+    mesh = read_json(case_dir / "mesh_quality.json")
+    flow = read_json(case_dir / "flow" / "summary.json")
     periodic = flow.get("periodic", {})
     change = periodic.get("last_relative_change")  # None: under two whole cycles
-    gci = _read_json(case_dir / "flow" / "convergence.json").get("branches", {}).get("TAWSS", {}).get(
+    gci = read_json(case_dir / "flow" / "convergence.json").get("branches", {}).get("TAWSS", {}).get(
         "whole wall", {}).get("gci_fine21")
     osi, low_tawss = _wall_area_fractions(case_dir / "flow" / "indices.vtp")
     return {

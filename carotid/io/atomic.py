@@ -63,6 +63,14 @@ def atomic_path(path: str | os.PathLike):
         tmp.unlink(missing_ok=True)
 
 
+def read_json(path: str | os.PathLike) -> dict:
+    """A JSON record, or an empty dict when it is missing or unreadable (a stage that has not run)."""
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return {}
+
+
 def write_json(data, path: str | os.PathLike) -> Path:
     """Write ``data`` as indented JSON, atomically."""
     path = Path(path)

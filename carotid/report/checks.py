@@ -6,7 +6,6 @@ returns plain values, so the HTML layer only lays them out.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -170,11 +169,3 @@ def stale_warnings(case_dir: Path, record: dict, geometry: dict, segmentation: d
             warnings.append(f"{', '.join(changed)} changed after `carotid run` recorded the {stage} stage: "
                             "results of later stages may not match them.")
     return warnings
-
-
-def read_json(path: Path) -> dict:
-    """A JSON record, or an empty dict when it is missing or unreadable."""
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
-        return {}

@@ -24,9 +24,9 @@ from carotid import __version__
 from carotid.centerline.model import branch_regions
 from carotid.flow.convergence import STATUS
 from carotid.flow.indices import HIGH_OSI, LOW_TAWSS_PA, node_areas
-from carotid.io import atomic_path, read_image
+from carotid.io import atomic_path, read_image, read_json
 from carotid.report import figures
-from carotid.report.checks import Check, quality_checks, read_json, stale_warnings, stenosis_category
+from carotid.report.checks import Check, quality_checks, stale_warnings, stenosis_category
 
 # Colour-map clipping of the wall maps: the percentile of the values at the top colour (OSI keeps its
 # natural range 0-0.5).
