@@ -51,7 +51,10 @@ adaptive step can change at every step).
 
 Boundary conditions: rigid no-slip walls (label 1); inlet (label 2) velocity = the inlet profile's axial
 speed times the inward normal; outlets (labels 3, ...) are traction-free (Laplacian-form viscous term)
-with a uniform pressure per outlet.
+with a uniform pressure per outlet.  For verification against an exact solution (``exact``), the velocity
+is instead that solution's on every boundary node (walls, inlet and outlets), the outlet nodes take its
+pressure, and no flow split is imposed; the boundary flux of the continuity equation is then taken over every
+non-outlet face.
 
 Mass balance and flow split.  The volume flow through an outlet is measured by the consistent flux: the
 residual of the discrete continuity equation at the outlet nodes (pressure-Dirichlet rows, whose equations
@@ -243,20 +246,26 @@ class CBSSolver:
     viscous : {"explicit", "implicit"}
         Molecular viscous term of the momentum step: explicit (the paper's CBS) or backward Euler (module
         docstring).
+    exact : object, optional
+        An exact solution for verification, with methods ``velocity(x, t) -> (k, 3)`` (m/s) and
+        ``pressure(x, t) -> (k,)`` (kinematic, m^2/s^2) at points ``x`` (k, 3) in m: its velocity is imposed on
+        the whole boundary and its pressure on the outlet nodes (``inlet_speed`` and ``split`` are then not
+        used; give ``velocity_scale``).
     """
 
     VISCOUS = ("explicit", "implicit")
 
     def __init__(self, mesh: FlowMesh, inlet_speed: Callable[[float], np.ndarray], nu: float, split=None,
                  dt: float | None = None, safety: float = 0.5, velocity_scale: float | None = None,
-                 turbulence=None, pressure: str = "auto", pressure_rtol: float = 1e-8, viscous: str = "explicit"):
+                 turbulence=None, pressure: str = "auto", pressure_rtol: float = 1e-8, viscous: str = "explicit",
+                 exact=None):
         if dt is not None and not dt > 0:
             raise CarotidError(f"the time step must be positive (got {dt})")
         if viscous not in self.VISCOUS:
             raise CarotidError(f"the viscous term must be 'explicit' or 'implicit' (got {viscous!r})")
         self.viscous, self._pressure_method, self._rtol = viscous, pressure, pressure_rtol
         self.mesh, self.inlet_speed, self.nu = mesh, inlet_speed, float(nu)
-        self.fixed_dt, self.safety, self.turbulence = dt, float(safety), turbulence
+        self.fixed_dt, self.safety, self.turbulence, self.exact = dt, float(safety), turbulence, exact
         n = mesh.n_points
         self.volumes, self.grads = asm.element_geometry(mesh.points, mesh.tets)
         self.h = asm.element_size(self.grads)
@@ -265,6 +274,8 @@ class CBSSolver:
         self.split = murray_split(mesh) if split is None else check_split(split, len(self.outlets))
         self._setup_boundaries()
         if velocity_scale is None:
+            if exact is not None:
+                raise CarotidError("a solver with an exact solution needs its velocity_scale")
             velocity_scale = 2.0 * float(np.abs(inlet_speed(0.0)).mean())
         self.velocity_scale = float(velocity_scale)
         self.tau = 1.0 / (velocity_scale / self.h + 2.0 * self.nu / self.h**2)
@@ -286,12 +297,18 @@ class CBSSolver:
         self.inlet_dir = -mesh.face_normal(INLET)  # inward unit normal
         nodes, weights = mesh.flux_weights(INLET)
         self._in_nodes, self._in_w = nodes, weights
-        self._in_tri = np.searchsorted(nodes, mesh.faces[mesh.labels == INLET])
-        self._in_an = mesh.face_area_normals(INLET)
         self.u_dirichlet = np.zeros(n, bool)
         self.u_dirichlet[wall] = True
         self.u_dirichlet[self.inlet_nodes] = True
         self._inlet_free = ~np.isin(self.inlet_nodes, wall)  # inlet nodes not on the rim
+        # faces whose prescribed velocity enters the continuity equation: the inlet, or every non-outlet face
+        flux_faces = mesh.labels == INLET if self.exact is None else mesh.labels <= INLET
+        if self.exact is not None:
+            self.u_dirichlet[np.unique(mesh.faces)] = True
+            self.exact_nodes = np.flatnonzero(self.u_dirichlet)
+        self._bc_nodes = np.unique(mesh.faces[flux_faces])
+        self._bc_tri = np.searchsorted(self._bc_nodes, mesh.faces[flux_faces])
+        self._bc_an = mesh.face_area_normals()[flux_faces]
         owner = np.full(n, -1)
         for j, lab in reversed(list(enumerate(self.outlets))):
             owner[mesh.face_nodes(lab)] = j
@@ -339,7 +356,7 @@ class CBSSolver:
         n, m = self.mesh.n_points, len(self.outlets)
         self.tau_stab = tau
         k = asm.stiffness_matrix(self.volumes * tau, self.grads, self.mesh.tets, n)
-        k_fd = k[self.free][:, self.p_dirichlet]
+        k_fd = self._k_fd = k[self.free][:, self.p_dirichlet]
         self._k_out = k[self.p_dirichlet]  # outlet rows of the pressure matrix: the consistent outlet fluxes
         self.pressure = PressureSolver(k[self.free][:, self.free], self._pressure_method, self._rtol)
         self.phi = np.zeros((m, n))
@@ -402,17 +419,18 @@ class CBSSolver:
         nodes, w = self.out_flux[j]
         return float(np.einsum("ij,ij->", w, u[nodes]))
 
-    def _inlet_nodal_flux(self, u: np.ndarray) -> np.ndarray:
-        """Consistent boundary flux ``int_inlet N_i u.n dS`` at the inlet nodes ``_in_nodes``, m^3/s, shape (k,).
+    def _boundary_nodal_flux(self, u: np.ndarray) -> np.ndarray:
+        """Consistent boundary flux ``int_Gamma N_i u.n dS`` over the inlet (with ``exact``: every non-outlet face)
+        at its nodes ``_bc_nodes``, m^3/s, shape (k,).
 
         It must be the consistent (not lumped) boundary integral: the weak divergence ``int grad N_i . u``
         it balances in the continuity equation is consistent, and a lumped flux leaves a node-by-node source
         at the inlet that the pressure equation turns into a spurious inlet pressure layer.
         """
-        tri, an = self._in_tri, self._in_an
-        un = np.einsum("tkc,tc->tk", u[self._in_nodes][tri], an)  # u_j . (area n) per triangle corner
+        tri, an = self._bc_tri, self._bc_an
+        un = np.einsum("tkc,tc->tk", u[self._bc_nodes][tri], an)  # u_j . (area n) per triangle corner
         return np.bincount(tri.ravel(), ((un.sum(axis=1)[:, None] + un) / 12.0).ravel(),
-                           minlength=len(self._in_nodes))
+                           minlength=len(self._bc_nodes))
 
     def inflow(self, u: np.ndarray) -> float:
         """Volume flow into the domain through the inlet, m^3/s."""
@@ -461,6 +479,9 @@ class CBSSolver:
 
     # ------------------------------------------------------------------ stepping
     def _apply_velocity_bc(self, u: np.ndarray, t: float) -> None:
+        if self.exact is not None:
+            u[self.exact_nodes] = self.exact.velocity(self.mesh.points[self.exact_nodes], t)
+            return
         u[self.u_dirichlet] = 0.0
         speed = np.asarray(self.inlet_speed(t), dtype=float)
         u[self.inlet_nodes[self._inlet_free]] = speed[self._inlet_free, None] * self.inlet_dir
@@ -519,7 +540,7 @@ class CBSSolver:
             self._apply_velocity_bc(ustar, t1)
         # 2. pressure with zero outlet pressure
         asm.weak_divergence(tets, self.grads, self.volumes, ustar, self._div)
-        self._div[self._in_nodes] -= self._inlet_nodal_flux(ustar)
+        self._div[self._bc_nodes] -= self._boundary_nodal_flux(ustar)
         projected = self._gp / self.mass[:, None]
         asm.weak_divergence(tets, self.grads, self.volumes * (self.tau_stab - dt), projected, self._proj)
         rhs = self._div + self._proj
@@ -527,8 +548,10 @@ class CBSSolver:
         projected[~self.u_dirichlet] = 0.0
         asm.weak_divergence(tets, self.grads, self.volumes * dt, projected, self._proj)
         rhs += self._proj
-        self._p0_free = self.pressure.solve(rhs[self.free], x0=self._p0_free)
         p = np.zeros(mesh.n_points)
+        if self.exact is not None:
+            p[self.p_dirichlet] = self.exact.pressure(mesh.points[self.p_dirichlet], t1)
+        self._p0_free = self.pressure.solve(rhs[self.free] - self._k_fd @ p[self.p_dirichlet], x0=self._p0_free)
         p[self.free] = self._p0_free
         # consistent outlet fluxes: the residual of the discrete continuity equation at the outlet nodes
         q0 = self.out_share @ (rhs[self.p_dirichlet] - self._k_out @ p)
@@ -536,7 +559,7 @@ class CBSSolver:
         asm.lumped_gradient(tets, self.grads, self.volumes, p, self._gp)
         u = ustar - (dt / self.mass)[:, None] * self._gp
         u[self.u_dirichlet] = ustar[self.u_dirichlet]
-        c = self._outlet_pressures(q0)
+        c = self._outlet_pressures(q0) if self.exact is None else np.zeros(len(self.outlets))
         u += dt * np.tensordot(c, self.s, axes=1)
         p += c @ self.phi
         if self.turbulence is not None:

@@ -1,9 +1,16 @@
 """Analytic verification of the flow solver on the user's machine (``carotid verify``).
 
-Every flow case starts from rest, so a scheme that does not move the flow cannot pass, and every pass/fail
+Every flow case starts from rest or, for the exact unsteady solution, from its field at t = 0 over a run
+in which it decays by a fifth, so a scheme that does not move the flow cannot pass; every pass/fail
 criterion comes from an analytic solution or a published correlation, never from this code's own output
 (formulas in validation.md):
 
+* convective: the Ethier-Steinman exact unsteady Navier-Stokes solution (:mod:`carotid.flow.exact`) in a
+  tube meshed by the mesh stage with its boundary layers, the exact velocity on the whole boundary and the
+  exact pressure on the outlet; errors of the nodal velocity, the element velocity gradients and the
+  pressure, with the observed orders under refinement in space and in time (:func:`convective_cases`).
+  In this Beltrami flow the convective term is balanced by the pressure, so convection is checked through
+  the pressure and the velocity it drives;
 * generalised inlet: the Womersley profile that :func:`carotid.flow.womersley.inlet_profile` solves on a
   triangulated face, on a circular face against the analytic Womersley profile over a cycle, and on an
   elliptic face against the elliptic-pipe Poiseuille profile ``u = 2U (1 - x^2/a^2 - y^2/b^2)``;
@@ -74,6 +81,9 @@ POISEUILLE = TubeSpec(n_square=8, n_core=4, n_layers=4, first_layer=0.06, growth
 SPLIT = TubeSpec(n_square=8, n_core=4, n_layers=4, first_layer=0.06, growth=1.25, n_axial=6, length=6.5)
 WOMERSLEY = TubeSpec(n_square=12, n_core=6, n_layers=5, first_layer=0.05, growth=1.25, n_axial=10, length=32.5)
 ENTRANCE = TubeSpec(n_square=6, n_core=3, n_layers=3, first_layer=0.2, growth=1.3, n_axial=39, length=39.0)
+# Ethier-Steinman case: tube radius (mm; the solution's length scale), Reynolds number U L / nu, run length in
+# convective times L / U
+ES_RADIUS, ES_RE, ES_DURATION = 3.0, 20.0, 2.0
 
 
 def disc_mesh(spec: TubeSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -339,6 +349,69 @@ def entrance(spec: TubeSpec = ENTRANCE, re: float = 50.0, viscous: str = "explic
             "centreline": {"z_mm": (z / 1e-3).tolist(), "u_over_mean": (uc / u_mean).tolist()}}
 
 
+def ethier_steinman_mesh(size: float, layers: int) -> FlowMesh:
+    """The mesh stage's boundary-layer mesh (:func:`carotid.mesh.build_mesh`) of a capped tube of radius
+    ``ES_RADIUS`` and length ``2 ES_RADIUS`` (mm) along +z from z = 0, core edge ``size`` (mm), ``layers``
+    prism sub-layers."""
+    from carotid.mesh.mesher import build_mesh
+    from carotid.mesh.testing import labelled_tube
+
+    surface = labelled_tube(radius=ES_RADIUS, length=2.0 * ES_RADIUS, size=size)
+    grid, _ = build_mesh(surface, layers=layers, size=size, lloyd_iterations=2)
+    return FlowMesh.from_pyvista(grid)
+
+
+def ethier_steinman(size: float, layers: int, steps: int, viscous: str = "explicit", re: float = ES_RE) -> dict:
+    """The Ethier-Steinman solution (:class:`carotid.flow.exact.EthierSteinman`) in a boundary-layer tube mesh.
+
+    The tube (radius L = ``ES_RADIUS``, the solution's length scale, centred on the solution's origin) is
+    meshed by the mesh stage; the exact velocity is imposed on its whole boundary and the exact pressure
+    on the outlet nodes.  The run starts from the exact field at t = 0 and takes ``steps`` fixed steps to
+    ``ES_DURATION`` convective times ``L/U`` (``U = re nu / L``), over which the exact velocity decays by a
+    factor ``exp(-d^2 ES_DURATION / re)`` (0.78 at Re 20): a solver that does not move the flow is off by
+    ``change`` (0.28).  The convective term matters through the pressure that balances it.
+
+    Returns
+    -------
+    dict
+        Relative L2 errors at the end: ``velocity_error`` and ``pressure_error`` (nodal, lumped-mass
+        weighted), ``gradient_error`` (element velocity gradients, whose wall projection is the WSS,
+        against the exact gradient at the element centroids, volume weighted); ``change`` (the exact
+        velocity's relative change over the run), ``h_mm`` (representative size ``(V/N)^(1/3)``), ``dt``,
+        ``steps``, ``tetrahedra``, ``re``.
+    """
+    from carotid.flow import assembly as asm
+    from carotid.flow.cbs import CBSSolver
+    from carotid.flow.convergence import representative_size
+    from carotid.flow.exact import EthierSteinman
+
+    mesh = ethier_steinman_mesh(size, layers)
+    length = ES_RADIUS * 1e-3
+    exact = EthierSteinman(length, re * NU / length, NU, (0.0, 0.0, length))
+    t_end = ES_DURATION * length / exact.speed
+    u0 = exact.velocity(mesh.points, 0.0)
+    solver = CBSSolver(mesh, None, NU, dt=t_end / steps, viscous=viscous, exact=exact,
+                       velocity_scale=float(np.linalg.norm(u0, axis=1).max()))
+    solver.reset(u0)
+    for _ in range(steps):
+        solver.step()
+    m, t = solver.mass, solver.t
+    u, p = exact.velocity(mesh.points, t), exact.pressure(mesh.points, t)
+    g = exact.velocity_gradient(mesh.points[mesh.tets].mean(axis=1), t)
+    gh = np.empty_like(g)
+    asm.velocity_gradients(mesh.tets, solver.grads, solver.u, gh)
+
+    def rel(err, ref, w):
+        return float(np.sqrt((w * err).sum() / (w * ref).sum()))
+
+    return {"velocity_error": rel(((solver.u - u) ** 2).sum(1), (u**2).sum(1), m),
+            "pressure_error": rel((solver.p - p) ** 2, p**2, m),
+            "gradient_error": rel(((gh - g) ** 2).sum((1, 2)), (g**2).sum((1, 2)), solver.volumes),
+            "change": rel(((u0 - u) ** 2).sum(1), (u**2).sum(1), m), "re": re, "steps": steps, "dt": t / steps,
+            "h_mm": float(representative_size(solver.volumes.sum(), len(mesh.tets))) / 1e-3,
+            "tetrahedra": len(mesh.tets)}
+
+
 def womersley(spec: TubeSpec | None = None, window: float = 1.0, samples: int = 24, settle: float = 0.5,
               n_harmonics: int = 10, viscous: str = "explicit") -> dict:
     """The carotid waveform in a straight tube with the generalised Womersley inlet profile, from rest.
@@ -438,11 +511,64 @@ def inlet_profiles(spec: TubeSpec = WOMERSLEY, n_harmonics: int = 10, samples: i
             "ellipse_error": float(np.abs(ellipse.velocity(0.0) - exact_e).max() / (2 * u_mean))}
 
 
-def _order(runs: list[dict], key: str) -> list[float]:
-    """Observed orders ``log(e_k / e_k+1) / log(h_k / h_k+1)`` of ``|run[key]|`` between successive meshes."""
+def _order(runs: list[dict], key: str, size: str = "first_layer_mm") -> list[float]:
+    """Observed orders ``log(e_k / e_k+1) / log(h_k / h_k+1)`` of ``|run[key]|`` between successive meshes,
+    ``h = run[size]``."""
     e = np.array([abs(r[key]) for r in runs])
-    h = np.array([r["first_layer_mm"] for r in runs])
+    h = np.array([r[size] for r in runs])
     return (np.log(e[:-1] / e[1:]) / np.log(h[:-1] / h[1:])).tolist()
+
+
+def _time_order(runs: list[dict], key: str) -> list[float]:
+    """Observed orders in time from runs whose step halves from one to the next: ``log2((e_k - e_k+1) /
+    (e_k+1 - e_k+2))``, which cancels the part of the error ``e = e_space + C dt^q`` that the mesh sets."""
+    e = np.array([r[key] for r in runs])
+    d = e[:-1] - e[1:]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.log2(d[:-1] / d[1:]).tolist()
+
+
+def convective_cases(viscous: str, quick: bool):
+    """The Ethier-Steinman case (:func:`ethier_steinman`) under refinement in space, then in time.
+
+    Space: three meshes (core edge and layer count scaled together by about 1.4 per level) with a step
+    small enough that the time error is a few % of the space error; the nodal velocity converges at
+    order 2 for P1 elements, the element gradients (hence the WSS) at order 1.  Time: three (``quick``) or
+    four steps halving on the middle mesh, the largest near the explicit viscous limit of its thinnest
+    layer; the scheme is first order in time (backward Euler pressure and viscosity), and its velocity
+    comes out at about 2 in this case.
+    Limits: velocity order >= 1.6 and error <= 1 % on the finest mesh, gradient order >= 0.8 and error <=
+    10 %, pressure error <= 2 %; time orders of velocity and pressure >= 0.8.
+
+    Yields
+    ------
+    name, passed, text, data
+        As :func:`solver_cases`.
+    """
+    sizes = ((1.0, 2), (0.7, 3), (0.5, 4)) if quick else ((0.7, 3), (0.5, 4), (0.35, 6))
+    runs = [ethier_steinman(size, layers, 800 if quick else 1600, viscous) for size, layers in sizes]
+    orders = {key: _order(runs, key, "h_mm") for key in ("velocity_error", "gradient_error", "pressure_error")}
+    f = runs[-1]
+    yield ("convective (Ethier-Steinman) in space",
+           min(orders["velocity_error"]) >= 1.6 and f["velocity_error"] <= 0.01
+           and min(orders["gradient_error"]) >= 0.8 and f["gradient_error"] <= 0.1 and f["pressure_error"] <= 0.02,
+           f"Re {f['re']:.0f}, exact velocity on the boundary of a {sizes[-1][1]}-layer mesh, {f['tetrahedra']} tets: "
+           f"velocity {100 * f['velocity_error']:.2f}% (<=1%), gradient {100 * f['gradient_error']:.1f}% "
+           f"(<=10%), pressure {100 * f['pressure_error']:.2f}% (<=2%) (a solver that does not move: "
+           f"{100 * f['change']:.0f}%); orders in h: velocity " + ", ".join(f"{o:.2f}" for o in orders["velocity_error"])
+           + " (>=1.6), gradient " + ", ".join(f"{o:.2f}" for o in orders["gradient_error"]) + " (>=0.8), pressure "
+           + ", ".join(f"{o:.2f}" for o in orders["pressure_error"]), {"orders": orders, "runs": runs})
+    size, layers = sizes[1]
+    steps = (100, 200, 400) if quick else (200, 400, 800, 1600)
+    runs = [ethier_steinman(size, layers, n, viscous) for n in steps]
+    orders = {key: _time_order(runs, key) for key in ("velocity_error", "pressure_error")}
+    yield ("convective (Ethier-Steinman) in time",
+           all(min(v) >= 0.8 for v in orders.values()),
+           f"{runs[0]['tetrahedra']} tets, {'/'.join(map(str, steps))} steps: velocity errors "
+           + ", ".join(f"{100 * r['velocity_error']:.2f}%" for r in runs) + ", pressure "
+           + ", ".join(f"{100 * r['pressure_error']:.2f}%" for r in runs) + "; orders in dt: velocity "
+           + ", ".join(f"{o:.2f}" for o in orders["velocity_error"]) + ", pressure "
+           + ", ".join(f"{o:.2f}" for o in orders["pressure_error"]) + " (>=0.8)", {"orders": orders, "runs": runs})
 
 
 def _pct(x: float) -> str:
@@ -468,6 +594,7 @@ def solver_cases(viscous: str, quick: bool):
     (pressure gradient 5 %).  With ``quick`` the Poiseuille runs use two meshes and the Womersley run a quarter
     cycle, and the explicit scheme skips Womersley (its step is bound by the wall layer: three minutes).
     """
+    yield from convective_cases(viscous, quick)
     runs = []
     for k in ((1, 2) if quick else (1, 2, 3)):
         runs.append(poiseuille(POISEUILLE.refined(k), viscous=viscous))
