@@ -207,10 +207,14 @@ def test_severe_stenosis_meshes_validly_with_a_thinner_layer_in_the_throat(steno
     assert core.min() >= 10.0
 
 
-def test_tetgen_core_keeps_the_boundary(tube):
+def test_tetgen_core_keeps_the_boundary_and_the_layer(tube):
+    """TetGen's slivers (below the core floor here) are reported, and the layer is not thinned chasing them."""
     mesh, quality = build_mesh(tube, layers=3, ratio=1.3, thickness=0.5, core="tetgen", lloyd_iterations=1)
     check_valid(tube, mesh)
     assert quality["parameters"]["core"] == "tetgen"
+    assert quality["mesh"]["core"]["below_floor"] > 0
+    assert quality["boundary_layer"]["thinned_against_core_slivers"] == {"rounds": 0, "wall_vertices": 0}
+    assert quality["boundary_layer"]["reduced_fraction"] == 0.0
 
 
 def test_too_thick_layer_is_reduced_with_a_warning(tube):

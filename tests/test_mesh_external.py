@@ -1,6 +1,7 @@
 """`carotid mesh --from-surface` on surfaces from other tools: end caps of a stenotic nozzle (never its
-sudden-expansion annulus), the layer in its throat, units, repeatability, and the real carotid fluid.stl
-(self-intersecting, needle triangles) meshed with its extent and volume kept."""
+sudden-expansion annulus), the layer in its throat (also as a CAD-style STL of long needles), its local
+radius where the FDA benchmark places it, a thin side branch, units, repeatability, and the real carotid
+fluid.stl (self-intersecting, needle triangles) meshed with its extent and volume kept."""
 
 import json
 
@@ -11,18 +12,20 @@ import pyvista as pv
 from conftest import FLUID_STL, needs_fluid_stl
 
 from carotid.cli import main
-from carotid.mesh import build_mesh
+from carotid.mesh import build_mesh, check_surface, label_flat_caps
 from carotid.mesh.io import split_cells
-from carotid.mesh.layers import tet_volumes
+from carotid.mesh.layers import build_layers, tet_volumes
 from carotid.mesh.mesher import CORE_MIN_DIHEDRAL
 from carotid.mesh.quality import min_dihedral
-from carotid.mesh.testing import stenotic_nozzle
+from carotid.mesh.testing import faceted_nozzle, side_branch, stenotic_nozzle
 
 # The nozzle (mm): 12 mm pipe, 20-degree cone, 4 mm x 40 mm throat, sudden expansion back to 12 mm.
 RADIUS, THROAT, INLET, OUTLET, THROAT_LENGTH = 6.0, 2.0, 10.0, 30.0, 40.0
 CONE = (RADIUS - THROAT) / np.tan(np.radians(10.0))
 STEP = INLET + CONE + THROAT_LENGTH  # z of the sudden expansion
 LENGTH = STEP + OUTLET
+# The side branch (mm): a parent tapering from 3 to 2.7 mm over 20 mm, a 0.6 mm branch leaving its middle at 70 deg.
+PARENT, PARENT_OUT, PARENT_LENGTH, BRANCH, BRANCH_LENGTH, BRANCH_DEG = 3.0, 2.7, 20.0, 0.6, 8.0, 70.0
 
 
 @pytest.fixture(scope="module")
@@ -46,6 +49,16 @@ def nozzle_case(nozzle_stl, tmp_path_factory):
     return pv.read(case / "mesh.vtu"), json.loads((case / "mesh_quality.json").read_text())
 
 
+def throat_depth(mesh):
+    """Layer depth in the nozzle's throat read from the mesh geometry: throat radius minus the radius of the
+    deepest layer node (3 mm from either end of the throat)."""
+    points = np.asarray(mesh.points)
+    tets, region = split_cells(mesh)[:2]
+    layer = np.unique(tets[region == 0])
+    z, r = points[layer, 2], np.linalg.norm(points[layer, :2], axis=1)
+    return THROAT - r[(z > INLET + CONE + 3.0) & (z < STEP - 3.0)].min()
+
+
 def test_nozzle_has_one_inlet_and_one_outlet_at_its_ends_and_the_annulus_is_wall(nozzle_case):
     mesh, quality = nozzle_case
     points = np.asarray(mesh.points)
@@ -61,15 +74,102 @@ def test_nozzle_has_one_inlet_and_one_outlet_at_its_ends_and_the_annulus_is_wall
 
 
 def test_nozzle_layer_stays_thin_in_the_throat(nozzle_case):
-    """Layer depth read from the mesh geometry: throat radius minus the radius of the deepest layer node."""
-    mesh, quality = nozzle_case
+    assert 0.05 * THROAT < throat_depth(nozzle_case[0]) < THROAT / 3.0
+
+
+def test_cad_style_stl_is_remeshed_by_its_local_radius_with_its_volume_and_a_thin_throat_layer(tmp_path, capsys):
+    """Rings of 32 vertices at the profile's corners only, so the 40 mm throat is one band of needle triangles.
+    Remeshed at its 10 mm median edge, the throat kept 12 triangles in all and the volume grew by 26 %; the
+    edge length now follows the local radius."""
+    stl = faceted_nozzle(segments=32, radius=RADIUS, throat_radius=THROAT, throat_length=THROAT_LENGTH,
+                         inlet_length=INLET, outlet_length=OUTLET)
+    stl.save(tmp_path / "cad.stl")
+    assert main(["mesh", "--from-surface", str(tmp_path / "cad.stl"), "-o", str(tmp_path / "c"), "--layers", "4",
+                 "--lloyd", "1"]) == 0
+    assert "remeshed in place" in capsys.readouterr().out
+    mesh = pv.read(tmp_path / "c" / "mesh.vtu")
     points = np.asarray(mesh.points)
-    tets, region = split_cells(mesh)[:2]
-    layer = np.unique(tets[region == 0])
-    z, r = points[layer, 2], np.linalg.norm(points[layer, :2], axis=1)
-    throat = (z > INLET + CONE + 3.0) & (z < STEP - 3.0)
-    depth = THROAT - r[throat].min()
-    assert 0.05 * THROAT < depth < THROAT / 3.0
+    tets, region, triangles, labels = split_cells(mesh)
+    volumes = tet_volumes(points, tets)
+    assert volumes.min() > 0
+    assert volumes.sum() == pytest.approx(stl.volume, rel=0.005)
+    z = points[triangles][:, :, 2]
+    np.testing.assert_allclose(z[labels == 2], 0.0, atol=1e-6)
+    np.testing.assert_allclose(z[labels == 3], LENGTH, atol=1e-6)
+    assert sorted(np.unique(labels)) == [1, 2, 3]
+    assert 0.05 * THROAT < throat_depth(mesh) < THROAT / 3.0
+    assert min_dihedral(points, tets[region == 1]).min() >= CORE_MIN_DIHEDRAL
+
+
+def test_local_radius_in_the_throat_of_a_nozzle_placed_like_the_fda_benchmark():
+    """The nozzle as the FDA benchmark places it (sudden expansion at z = 0, z = -90..70 mm), its axis tilted
+    10 degrees.  The shrinking ball started as large as the nozzle (160 mm): 30-35 mm before the expansion
+    it met the expansion's rim at under 30 degrees from the wall point, was taken for a neighbour, and the
+    radius stayed 160 mm at z = -33..-30 mm (a 1.8 mm layer in the 2 mm throat)."""
+    inlet = 90.0 - THROAT_LENGTH - CONE
+    nozzle = stenotic_nozzle(radius=RADIUS, throat_radius=THROAT, cone_deg=20.0, throat_length=THROAT_LENGTH,
+                             inlet_length=inlet, outlet_length=70.0, size=1.0)
+    tilt = np.radians(10.0)
+    rotation = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(tilt), -np.sin(tilt)], [0.0, np.sin(tilt), np.cos(tilt)]])
+    origin = np.array([3.0, -2.0, 0.0])
+    placed = (np.asarray(nozzle.points) - [0.0, 0.0, inlet + CONE + THROAT_LENGTH]) @ rotation.T + origin
+    surface = check_surface(label_flat_caps(pv.PolyData(placed, nozzle.faces)))
+    layer = build_layers(surface, layers=1)
+    local = (surface.points[layer.wall_vertices] - origin) @ rotation  # back to the nozzle's frame, step at 0
+    z, r = local[:, 2], np.linalg.norm(local[:, :2], axis=1)
+    throat = (z > 3.0 - THROAT_LENGTH) & (z < -3.0) & (r < THROAT + 0.5)
+    radius = layer.local_radius[throat]
+    assert throat.sum() > 500
+    assert np.median(radius) == pytest.approx(THROAT, rel=0.03)
+    assert 0.75 * THROAT < radius.min() and radius.max() < 1.05 * THROAT
+    assert layer.thickness[throat].max() < THROAT / 3.0
+
+
+def area_and_centroid(corners):
+    """Area (mm^2) and area-weighted centroid (3,) of triangles given by their corners (m, 3, 3)."""
+    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    return area.sum(), area @ corners.mean(axis=1) / area.sum()
+
+
+@pytest.fixture(scope="module")
+def branch_case(tmp_path_factory):
+    """The side branch as a plain STL through `carotid mesh --from-surface` with 4 layers: (labelled surface
+    from the generator, the STL's enclosed volume, mesh)."""
+    surface = side_branch(radius=PARENT, outlet_radius=PARENT_OUT, length=PARENT_LENGTH, branch_radius=BRANCH,
+                          branch_length=BRANCH_LENGTH, angle_deg=BRANCH_DEG)
+    folder = tmp_path_factory.mktemp("branch")
+    pv.PolyData(surface.points, surface.faces).save(folder / "branch.stl")
+    assert main(["mesh", "--from-surface", str(folder / "branch.stl"), "-o", str(folder / "c"), "--layers", "4"]) == 0
+    return surface, pv.read(folder / "branch.stl").volume, pv.read(folder / "c" / "mesh.vtu")
+
+
+def test_thin_side_branch_gets_its_cap_and_a_thin_layer_in_a_valid_mesh(branch_case):
+    surface, enclosed, mesh = branch_case
+    points = np.asarray(mesh.points)
+    tets, region, triangles, labels = split_cells(mesh)
+    assert sorted(np.unique(labels)) == [1, 2, 3, 4]
+    given = check_surface(surface)
+    for label, radius in ((2, PARENT), (3, PARENT_OUT), (4, BRANCH)):  # the generator's caps, ranked by area
+        area, centre = area_and_centroid(points[triangles[labels == label]])
+        expected_area, expected_centre = area_and_centroid(given.points[given.triangles[given.labels == label]])
+        assert area == pytest.approx(expected_area, rel=1e-6)  # the STL holds single-precision coordinates
+        np.testing.assert_allclose(centre, expected_centre, atol=1e-5)
+        assert area == pytest.approx(np.pi * radius**2, rel=0.03)  # polygons: 16 sides on the branch
+    volumes = tet_volumes(points, tets)
+    assert volumes.min() > 1e-4 * np.median(volumes)  # none inverted, none flat
+    assert volumes.sum() == pytest.approx(enclosed, rel=0.005)
+    assert min_dihedral(points, tets[region == 1]).min() >= CORE_MIN_DIHEDRAL
+    # layer depth in the branch from the mesh geometry: branch radius minus the smallest distance of a layer
+    # node from the branch's axis, from 2 mm beyond the parent's wall to 1 mm before the branch's end
+    angle = np.radians(BRANCH_DEG)
+    axis = np.array([np.sin(angle), 0.0, np.cos(angle)])
+    wall = 0.5 * (PARENT + PARENT_OUT) / np.sin(angle)  # along the branch's axis
+    offset = points[np.unique(tets[region == 0])] - [0.0, 0.0, 0.5 * PARENT_LENGTH]
+    along = offset @ axis
+    distance = np.linalg.norm(offset - along[:, None] * axis, axis=1)
+    inside = (along > wall + 2.0) & (along < wall + BRANCH_LENGTH - 1.0) & (distance < BRANCH)
+    assert inside.sum() > 500
+    assert 0.05 * BRANCH < BRANCH - distance[inside].min() < BRANCH / 3.0
 
 
 def test_surface_in_metres_is_refused_unless_scaled(nozzle, tmp_path, capsys):

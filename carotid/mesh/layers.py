@@ -165,17 +165,23 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-300)
 
 
-def inscribed_radius(points: np.ndarray, inward: np.ndarray, cloud: np.ndarray | None = None,
-                     iterations: int = 40, min_angle_deg: float = 30.0) -> np.ndarray:
+def inscribed_radius(points: np.ndarray, inward: np.ndarray, iterations: int = 40,
+                     min_angle_deg: float = 30.0) -> np.ndarray:
     """Radius of the largest ball inside the surface that touches each point (shrinking-ball method).
 
     Ma, Bae & Marchetti (2012), "3D medial axis point approximation using
     nearest neighbors and the normal field": a ball tangent at p with centre
-    p + r n is shrunk to pass through the nearest sample q inside it until
-    none is.  A q that the shrunk ball would see within ``min_angle_deg`` of p
-    from its centre is a neighbour of p on the same side (the ball only pokes
-    out because the normal is slightly off), not the opposite wall, and
-    stops the shrinking (the paper's denoising rule).
+    p + r n, first as large as the surface, is shrunk to pass through the
+    nearest sample q inside it until none is.  A q on the same side as p
+    (its inward normal within 90 degrees of p's) that the shrunk ball would
+    see within ``min_angle_deg`` of p from its centre is a neighbour of p
+    (the ball only pokes out because the normal is slightly off), not the
+    opposite wall, and stops the shrinking (the paper's denoising rule).
+    The normal test matters while the ball is still large: a sample of the
+    opposite wall far along the axis is then also seen at a small angle
+    (in a 4 mm throat 30 mm before a sudden expansion, the first ball of a
+    160 mm nozzle met the expansion's rim at 29 degrees, and the radius
+    stayed 160 mm).
 
     Parameters
     ----------
@@ -183,32 +189,30 @@ def inscribed_radius(points: np.ndarray, inward: np.ndarray, cloud: np.ndarray |
         Surface samples (mm).
     inward : ndarray, shape (n, 3)
         Unit inward normals.
-    cloud : ndarray, shape (c, 3), optional
-        Samples that bound the balls; default ``points``.
     iterations : int
         Maximum number of shrinking steps.
     min_angle_deg : float
-        Separation angle below which a sample does not shrink the ball.
+        Separation angle below which a same-side sample does not shrink the ball.
 
     Returns
     -------
     ndarray, shape (n,)
         Radii in mm.
     """
-    cloud = points if cloud is None else cloud
-    tree = cKDTree(cloud)
-    radius = np.full(len(points), float(np.ptp(cloud, axis=0).max()))
+    tree = cKDTree(points)
+    radius = np.full(len(points), float(np.ptp(points, axis=0).max()))
     active = np.arange(len(points))
     cos_min = np.cos(np.radians(min_angle_deg))
     for _ in range(iterations):
         p, d, r = points[active], inward[active], radius[active]
         dist, nearest = tree.query(p + r[:, None] * d)
-        q = cloud[nearest]
+        q = points[nearest]
         along = np.einsum("ij,ij->i", q - p, d)
         new_r = np.einsum("ij,ij->i", p - q, p - q) / (2.0 * np.maximum(along, 1e-300))
         centre = p + new_r[:, None] * d
         cos_sep = np.einsum("ij,ij->i", _unit(p - centre), _unit(q - centre))
-        shrink = (dist < r * (1.0 - 1e-9)) & (along > 1e-12) & (new_r < r * (1.0 - 1e-9)) & (cos_sep < cos_min)
+        neighbour = (cos_sep >= cos_min) & (np.einsum("ij,ij->i", inward[nearest], d) > 0.0)
+        shrink = (dist < r * (1.0 - 1e-9)) & (along > 1e-12) & (new_r < r * (1.0 - 1e-9)) & ~neighbour
         radius[active[shrink]] = new_r[shrink]
         active = active[shrink]
         if active.size == 0:

@@ -1,11 +1,14 @@
-"""Labelled, capped test surfaces: straight, stenosed or bent tubes, a stenotic nozzle and a Y bifurcation.
+"""Labelled, capped test surfaces: straight, stenosed or bent tubes, a stenotic nozzle, a Y bifurcation and a
+tube with a thin side branch; and the nozzle as a CAD tool exports it.
 
 The surfaces are made with gmsh's OpenCASCADE kernel (a loft of circles or a
 union of cylinders) and meshed by gmsh's Frontal-Delaunay surface mesher, so
 the triangles are nearly equilateral, like the remeshed lumen surface of the
 pipeline.  Every surface is closed, oriented outward, in mm, and carries the
 VMTK face labels in the cell array ``CellEntityIds``: wall 1, inlet cap 2,
-outlet caps 3, 4, ...  Caps are exactly planar.
+outlet caps 3, 4, ...  Caps are exactly planar.  The exception,
+:func:`faceted_nozzle`, is an unlabelled STL-like triangulation of long
+needles, as surfaces from other tools come.
 """
 
 from __future__ import annotations
@@ -164,6 +167,69 @@ def stenotic_nozzle(radius: float = 6.0, throat_radius: float = 2.0, cone_deg: f
         return _mesh_labelled(gmsh, volume, size, np.array([0.0, 0.0, 1.0]))
 
 
+def side_branch(radius: float = 3.0, outlet_radius: float = 2.7, length: float = 20.0, branch_radius: float = 0.6,
+                branch_length: float = 8.0, angle_deg: float = 70.0, size: float = 0.6) -> pv.PolyData:
+    """A slightly tapered tube along +z from the origin with a thin side branch leaving its middle.
+
+    The parent is a cone from ``radius`` at z = 0 to ``outlet_radius`` at
+    z = ``length`` (so the three caps differ in area, as the flat-cap
+    labelling ranks them); the branch cylinder starts on the parent's axis
+    at mid-length, leaves at ``angle_deg`` from +z towards +x and ends
+    ``branch_length`` beyond the parent's wall along its axis.  Lengths in mm.
+
+    Returns
+    -------
+    pyvista.PolyData
+        Closed, outward-oriented triangles with ``CellEntityIds``: wall 1, inlet 2 (z = 0), outlet 3
+        (the parent's end, z = ``length``), outlet 4 (the branch's end).
+    """
+    a = np.radians(angle_deg)
+    reach = 0.5 * (radius + outlet_radius) / np.sin(a) + branch_length  # axis to the branch's end
+    with gmsh_session() as gmsh:
+        occ = gmsh.model.occ
+        parent = occ.addCone(0, 0, 0, 0, 0, length, radius, outlet_radius)
+        branch = occ.addCylinder(0, 0, 0.5 * length, reach * np.sin(a), 0.0, reach * np.cos(a), branch_radius)
+        fused, _ = occ.fuse([(3, parent)], [(3, branch)])
+        occ.synchronize()
+        volume = [tag for dim, tag in fused if dim == 3][0]
+        return _mesh_labelled(gmsh, volume, size, np.array([0.0, 0.0, 1.0]))
+
+
+def faceted_nozzle(segments: int = 32, radius: float = 6.0, throat_radius: float = 2.0, cone_deg: float = 20.0,
+                   throat_length: float = 40.0, inlet_length: float = 10.0, outlet_length: float = 30.0
+                   ) -> pv.PolyData:
+    """The stenotic nozzle of :func:`stenotic_nozzle` triangulated the way CAD tools export an STL.
+
+    A ring of ``segments`` vertices sits at every corner of the profile only
+    (the inlet, the start and end of the cone, the two rims of the sudden
+    expansion's annulus, the outlet); the band between two rings is cut into
+    ``2 segments`` long triangles (the throat is one band of 40 mm needles)
+    and each end cap is a fan around its centre.  No labels.
+
+    Returns
+    -------
+    pyvista.PolyData
+        Closed, outward-oriented triangles (mm), along +z from the inlet at z = 0.
+    """
+    cone = (radius - throat_radius) / np.tan(np.radians(0.5 * cone_deg))
+    step = inlet_length + cone + throat_length
+    ring_z = np.array([0.0, inlet_length, inlet_length + cone, step, step, step + outlet_length])
+    ring_r = np.array([radius, radius, throat_radius, throat_radius, radius, radius])
+    theta = 2.0 * np.pi * np.arange(segments) / segments
+    rings = np.stack([ring_r[:, None] * np.cos(theta), ring_r[:, None] * np.sin(theta),
+                      np.repeat(ring_z[:, None], segments, axis=1)], axis=2).reshape(-1, 3)
+    points = np.vstack([rings, [[0.0, 0.0, 0.0], [0.0, 0.0, ring_z[-1]]]])
+    j = np.arange(segments)
+    a = (np.arange(len(ring_z) - 1)[:, None] * segments + j).ravel()  # vertex j of every ring but the last
+    nxt = a - a % segments + (a + 1) % segments
+    bands = np.vstack([np.c_[a, nxt, nxt + segments], np.c_[a, nxt + segments, a + segments]])
+    last = (len(ring_z) - 1) * segments
+    caps = np.vstack([np.c_[j, (j + 1) % segments, np.full(segments, len(points) - 2)],
+                      np.c_[last + j, last + (j + 1) % segments, np.full(segments, len(points) - 1)]])
+    triangles = np.vstack([bands, caps])
+    return pv.PolyData.from_regular_faces(points, orient_outward(points, triangles))
+
+
 def bend_z_axis(points: np.ndarray, bend_radius: float) -> np.ndarray:
     """Bend the z axis into a circular arc of radius ``bend_radius`` (mm) in the x-z plane.
 
@@ -189,12 +255,16 @@ def bend_z_axis(points: np.ndarray, bend_radius: float) -> np.ndarray:
 
 def labelled_bifurcation(radius: float = 3.0, branch_radii: tuple[float, float] = (2.2, 1.7),
                          lengths: tuple[float, float, float] = (15.0, 15.0, 12.0),
-                         angles_deg: tuple[float, float] = (25.0, 30.0), size: float = 0.5) -> pv.PolyData:
+                         angles_deg: tuple[float, float] = (25.0, 30.0), size: float = 0.5,
+                         stenosis: float = 0.0, sections: int = 21) -> pv.PolyData:
     """A capped, labelled Y bifurcation: a common trunk along +z ending at the origin and two branches.
 
     The trunk (radius ``radius``, from z = -lengths[0]) and a sphere of the same
     radius at the origin are united with two cylinders leaving the origin at
     ``angles_deg`` from +z towards +x (first branch) and -x (second branch).
+    With ``stenosis`` (an area reduction, 0.7: 70 %) the first branch narrows at
+    mid-length with the cosine profile of :func:`stenosis_profile` over two
+    diameters (a smooth loft through ``sections`` circles).
 
     Returns
     -------
@@ -209,8 +279,18 @@ def labelled_bifurcation(radius: float = 3.0, branch_radii: tuple[float, float] 
         branches = []
         for r, length, angle, side in zip(branch_radii, lengths[1:], angles_deg, (1.0, -1.0)):
             a = np.radians(angle)
-            axis = length * np.array([side * np.sin(a), 0.0, np.cos(a)])
-            branches.append(occ.addCylinder(0, 0, 0, *axis, r))
+            axis = np.array([side * np.sin(a), 0.0, np.cos(a)])
+            if side > 0 and stenosis > 0:
+                width = 4.0 * r
+                s = np.r_[0.0, np.linspace(0.5 * (length - width), 0.5 * (length + width), sections), length]
+                radii = stenosis_profile(s, r, length, 1.0 - np.sqrt(1.0 - stenosis), width)
+                wires = [occ.addCurveLoop([occ.addCircle(0.0, 0.0, sk, rk)]) for sk, rk in zip(s, radii)]
+                loft = [(dim, tag) for dim, tag in occ.addThruSections(wires, makeSolid=True, makeRuled=False)
+                        if dim == 3]
+                occ.rotate(loft, 0, 0, 0, 0, 1, 0, a)  # +z onto the branch axis (towards +x)
+                branches.append(loft[0][1])
+            else:
+                branches.append(occ.addCylinder(0, 0, 0, *(length * axis), r))
         fused, _ = occ.fuse([(3, trunk)], [(3, ball)] + [(3, b) for b in branches])
         occ.synchronize()
         volume = [tag for dim, tag in fused if dim == 3][0]
