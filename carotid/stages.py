@@ -138,6 +138,23 @@ class FlowStageParameters:
         CSV of the inlet flow (time s, flow mL/s); empty: the built-in common carotid waveform.
     split : list of float
         Fraction of the flow leaving each outlet (CellEntityIds 3, 4, ...); empty: Murray's law.
+    outlets : str
+        Outlet model: "murray" or "split" (a prescribed split), "resistance" or "rcr" (lumped outlets,
+        calibrated for that split as the mean share unless ``resistance`` / ``rcr`` give their values).
+    mean_pressure_mmhg : float
+        Mean pressure the lumped outlets are calibrated for, mmHg.
+    pulse_pressure_mmhg : float
+        Pulse pressure the RCR outlets are calibrated for, mmHg.
+    proximal_fraction : float
+        Proximal share R_p / (R_p + R_d) of the calibrated RCR outlets.
+    distal_pressure_mmhg : float
+        Pressure downstream of the lumped outlets, mmHg.
+    resistance : list of float
+        Outlet resistances, Pa s/m^3, one per outlet (empty: calibrated).
+    rcr : list of [R_p, C, R_d]
+        RCR parameters per outlet, Pa s/m^3, m^3/Pa, Pa s/m^3 (empty: calibrated).
+    backflow : float
+        Coefficient of the directional backflow stabilisation at the outlets (0: none; 0.2 as SimVascular).
     turbulence : str
         "none" or "sa" (Spalart-Allmaras).
     viscous : str
@@ -155,7 +172,10 @@ class FlowStageParameters:
     rho : float
         Blood density, kg/m^3.
     mu : float
-        Blood dynamic viscosity, Pa s.
+        Blood dynamic viscosity, Pa s (the Newtonian one).
+    rheology : str
+        "newtonian" (``mu``), "carreau" (Carreau-Yasuda with the blood parameters of Cho & Kensey 1991) or
+        "casson" (yield stress 0.005 Pa, high-shear viscosity 0.0035 Pa s).
     force : bool
         Run even when the estimated step count or output size exceeds the sane bounds.
     periodic_tol : float
@@ -167,6 +187,14 @@ class FlowStageParameters:
     dt: float = 0.0
     waveform: str = ""
     split: list = field(default_factory=list)
+    outlets: str = "murray"
+    mean_pressure_mmhg: float = 93.0
+    pulse_pressure_mmhg: float = 40.0
+    proximal_fraction: float = 0.09
+    distal_pressure_mmhg: float = 0.0
+    resistance: list = field(default_factory=list)
+    rcr: list = field(default_factory=list)
+    backflow: float = 0.2
     turbulence: str = "none"
     viscous: str = "implicit"
     pressure: str = "auto"
@@ -175,12 +203,15 @@ class FlowStageParameters:
     flow_ml_s: float = 0.0
     rho: float = 1060.0
     mu: float = 3.5e-3
+    rheology: str = "newtonian"
     force: bool = False
     periodic_tol: float = 0.0
 
     # Blood and the analogue fluids of flow phantoms (water to glycerol mixtures).
     RANGES = {"cycles": (1e-3, 100.0), "dt": (0.0, 0.01), "output_every": (1, 10**7), "checkpoint_every": (1, 10**7),
-              "flow_ml_s": (0.0, 1000.0), "rho": (500.0, 2000.0), "mu": (1e-4, 0.1), "periodic_tol": (0.0, 0.5)}
+              "flow_ml_s": (0.0, 1000.0), "rho": (500.0, 2000.0), "mu": (1e-4, 0.1), "periodic_tol": (0.0, 0.5),
+              "mean_pressure_mmhg": (20.0, 200.0), "pulse_pressure_mmhg": (1.0, 150.0),
+              "proximal_fraction": (0.01, 0.5), "distal_pressure_mmhg": (0.0, 50.0), "backflow": (0.0, 1.0)}
 
     def flow_parameters(self):
         """The solver's ``FlowParameters``, validated."""
@@ -193,7 +224,9 @@ class FlowStageParameters:
         waveform = (read_waveform_csv(self.waveform) if self.waveform else
                     constant_waveform(self.flow_ml_s * ML) if self.flow_ml_s else None)
         fields = {k: v for k, v in asdict(self).items() if k != "flow_ml_s"}
-        fields.update(dt=self.dt or None, waveform=waveform, split=tuple(self.split) or None)
+        fields.update(dt=self.dt or None, waveform=waveform, split=tuple(self.split) or None,
+                      resistance=tuple(self.resistance) or None,
+                      rcr=tuple(tuple(float(v) for v in row) for row in self.rcr) or None)
         return FlowParameters(**fields).validate()
 
     def validate(self) -> "FlowStageParameters":

@@ -70,6 +70,54 @@ def stiffness_matrix(volumes: np.ndarray, grads: np.ndarray, tets: np.ndarray, n
     return k
 
 
+class StiffnessBlock:
+    """A block of the weighted P1 Laplacian ``K(w)_ij = sum_e w_e V_e grad N_i . grad N_j``, re-assembled in
+    place for new element weights without rebuilding its sparsity pattern (for an element viscosity that
+    changes every step).
+
+    Parameters
+    ----------
+    volumes : ndarray, shape (m,)
+        Element volumes, m^3.
+    grads : ndarray, shape (m, 4, 3)
+        Shape-function gradients, 1/m.
+    tets : ndarray, shape (m, 4)
+    n : int
+        Number of nodes.
+    rows, cols : ndarray of int
+        Global node indices of the block's rows and columns (in that order).
+    """
+
+    def __init__(self, volumes, grads, tets, n: int, rows: np.ndarray, cols: np.ndarray):
+        local_rows, local_cols = np.full(n, -1), np.full(n, -1)
+        local_rows[rows], local_cols[cols] = np.arange(len(rows)), np.arange(len(cols))
+        er = local_rows[np.repeat(tets, 4, axis=1)].ravel()
+        ec = local_cols[np.tile(tets, (1, 4))].ravel()
+        keep = np.flatnonzero((er >= 0) & (ec >= 0))
+        self._element = (keep // 16).astype(np.int32)
+        self._values = (volumes[:, None, None] * np.einsum("eic,ejc->eij", grads, grads)).ravel()[keep]
+        keys = er[keep].astype(np.int64) * len(cols) + ec[keep]
+        unique, pos = np.unique(keys, return_inverse=True)
+        self._pos = pos.astype(np.int32)
+        indptr = np.r_[0, np.cumsum(np.bincount(unique // len(cols), minlength=len(rows)))]
+        self.matrix = sp.csr_matrix((np.zeros(len(unique)), unique % len(cols), indptr), shape=(len(rows), len(cols)))
+
+    def update(self, weights: np.ndarray) -> sp.csr_matrix:
+        """The block for element weights ``weights`` (m,) (a viscosity in m^2/s: the viscous matrix), written
+        into ``self.matrix``, which is returned."""
+        _scatter_weighted(self._pos, self._values, self._element, np.ascontiguousarray(weights, dtype=float),
+                          self.matrix.data)
+        return self.matrix
+
+
+@nb.njit(cache=True)
+def _scatter_weighted(pos, values, element, weights, out):
+    """``out[:] = 0; out[pos[i]] += values[i] * weights[element[i]]``."""
+    out[:] = 0.0
+    for i in range(len(pos)):
+        out[pos[i]] += values[i] * weights[element[i]]
+
+
 @nb.njit(cache=True, fastmath=False)
 def momentum_residual(tets, grads, volumes, u, nu_e, half_dt, out):
     """Explicit CBS momentum residual, scattered to ``out`` (n, 3), which it overwrites.

@@ -56,6 +56,16 @@ is instead that solution's on every boundary node (walls, inlet and outlets), th
 pressure, and no flow split is imposed; the boundary flux of the continuity equation is then taken over every
 non-outlet face.
 
+Lumped outlets (``outlets``, :mod:`carotid.flow.outlets`): instead of a prescribed split, each outlet's
+pressure follows a resistance or RCR law of its consistent flux.  The fluxes are affine in the outlet
+pressures, ``q = q0 + F c``, and the backward-Euler law is affine in the flux, ``P = R_eff q + b``, so the
+step solves ``(I - R_eff F) c = R_eff q0 + b`` (implicit coupling) and then advances the Windkessel states
+with the flux it gives.  Where blood re-enters through an outlet (diastole, vortices leaving a branch), the
+convective energy flux ``-(rho/2) |u|^2 u.n`` feeds the domain without bound; the directional backflow
+stabilisation of Esmaily-Moghadam et al. (2011, Comput Mech 48:277) adds the outlet traction
+``beta rho min(u.n, 0) u`` (``backflow`` = beta, 0.2 in SimVascular; 0.5 cancels that flux), lumped at the
+outlet nodes.
+
 Mass balance and flow split.  The volume flow through an outlet is measured by the consistent flux: the
 residual of the discrete continuity equation at the outlet nodes (pressure-Dirichlet rows, whose equations
 are not solved), shared between outlets by boundary area where two meet (Hughes et al. 2000, "The
@@ -80,6 +90,7 @@ import scipy.sparse.linalg as spla
 from carotid.errors import CarotidError
 from carotid.flow import assembly as asm
 from carotid.flow.mesh import INLET, WALL, FlowMesh
+from carotid.flow.rheology import shear_rate
 
 
 def murray_split(mesh: FlowMesh) -> np.ndarray:
@@ -246,6 +257,15 @@ class CBSSolver:
     viscous : {"explicit", "implicit"}
         Molecular viscous term of the momentum step: explicit (the paper's CBS) or backward Euler (module
         docstring).
+    outlets : OutletModel, optional
+        Resistance or RCR outlets (:mod:`carotid.flow.outlets`) instead of the prescribed ``split``.
+    rho : float
+        Density, kg/m^3: converts the outlet model's pressures (Pa) to the solver's kinematic pressure.
+    backflow : float
+        Coefficient beta of the outlet backflow stabilisation (0: none).
+    rheology : Rheology, optional
+        A shear-rate dependent viscosity (:mod:`carotid.flow.rheology`), evaluated per element from the previous
+        step's velocity; ``nu`` then only sets the stabilisation time scale.
     exact : object, optional
         An exact solution for verification, with methods ``velocity(x, t) -> (k, 3)`` (m/s) and
         ``pressure(x, t) -> (k,)`` (kinematic, m^2/s^2) at points ``x`` (k, 3) in m: its velocity is imposed on
@@ -258,7 +278,7 @@ class CBSSolver:
     def __init__(self, mesh: FlowMesh, inlet_speed: Callable[[float], np.ndarray], nu: float, split=None,
                  dt: float | None = None, safety: float = 0.5, velocity_scale: float | None = None,
                  turbulence=None, pressure: str = "auto", pressure_rtol: float = 1e-8, viscous: str = "explicit",
-                 exact=None):
+                 outlets=None, rho: float = 1060.0, backflow: float = 0.0, rheology=None, exact=None):
         if dt is not None and not dt > 0:
             raise CarotidError(f"the time step must be positive (got {dt})")
         if viscous not in self.VISCOUS:
@@ -266,6 +286,13 @@ class CBSSolver:
         self.viscous, self._pressure_method, self._rtol = viscous, pressure, pressure_rtol
         self.mesh, self.inlet_speed, self.nu = mesh, inlet_speed, float(nu)
         self.fixed_dt, self.safety, self.turbulence, self.exact = dt, float(safety), turbulence, exact
+        self.lumped, self.rho, self.backflow = outlets, float(rho), float(backflow)
+        self.rheology = None if rheology is None or rheology.newtonian else rheology
+        if outlets is not None:
+            if outlets.n_outlets != len(mesh.outlet_labels):
+                raise CarotidError(f"the outlet model has {outlets.n_outlets} outlets but the mesh has "
+                                   f"{len(mesh.outlet_labels)}")
+            self._pc0 = outlets.pc.copy()  # the Windkessel state at t = 0
         n = mesh.n_points
         self.volumes, self.grads = asm.element_geometry(mesh.points, mesh.tets)
         self.h = asm.element_size(self.grads)
@@ -316,6 +343,8 @@ class CBSSolver:
         self.p_owner = owner[self.p_dirichlet]
         self.free = np.flatnonzero(owner < 0)
         self.out_flux = [mesh.flux_weights(lab) for lab in self.outlets]
+        self._out_nodes = np.concatenate([nodes for nodes, _ in self.out_flux])
+        self._out_w = np.concatenate([w for _, w in self.out_flux])
         self.out_share = self._outlet_shares()
         self.outlet_areas = np.array([mesh.face_area(lab) for lab in self.outlets])
 
@@ -364,8 +393,8 @@ class CBSSolver:
         for j in range(m):
             pd = (self.p_owner == j).astype(float)
             self.phi[j, self.p_dirichlet] = pd
-            if m > 1:
-                self.phi[j, self.free] = self.pressure.solve(-(k_fd @ pd))
+            # with one outlet the lifting is the constant 1 (the rows of K_tau sum to zero)
+            self.phi[j, self.free] = self.pressure.solve(-(k_fd @ pd)) if m > 1 else 1.0
             grad = np.zeros((n, 3))
             asm.lumped_gradient(self.mesh.tets, self.grads, self.volumes, self.phi[j], grad)
             self.s[j] = -grad / self.mass[:, None]
@@ -375,14 +404,23 @@ class CBSSolver:
 
     def _setup_implicit_viscosity(self) -> None:
         """The molecular viscous matrix split into free/Dirichlet velocity columns, and the size ``h_rest`` of
-        the step for a fluid at rest (:meth:`time_step`)."""
-        k = asm.stiffness_matrix(self.volumes * self.nu, self.grads, self.mesh.tets, self.mesh.n_points)
+        the step for a fluid at rest (:meth:`time_step`).  With a ``rheology`` its blocks are kept to be
+        re-assembled with each step's element viscosity (:meth:`_viscous_matrices`)."""
+        mesh = self.mesh
         self._u_free = np.flatnonzero(~self.u_dirichlet)
-        self._kv_ff = k[self._u_free][:, self._u_free].tocsr()
-        self._kv_fd = k[self._u_free][:, self.u_dirichlet].tocsr()
-        self._kv_diag = self._kv_ff.diagonal()
+        blocks = [asm.StiffnessBlock(self.volumes, self.grads, mesh.tets, mesh.n_points, self._u_free, cols)
+                  for cols in (self._u_free, np.flatnonzero(self.u_dirichlet))]
+        self._viscous_matrices(np.full(len(mesh.tets), self.nu), blocks)
+        self._kv_blocks = blocks if self.rheology is not None else None
         self._du_free = np.zeros((len(self._u_free), 3))
         self._h_rest = float(np.median(np.cbrt(6.0 * np.sqrt(2.0) * self.volumes)))
+
+    def _viscous_matrices(self, nu: np.ndarray, blocks=None) -> None:
+        """Set the free/free and free/Dirichlet blocks of the viscous matrix for the element viscosity ``nu``
+        (m,), m^2/s, and the diagonal of the first."""
+        ff, fd = blocks or self._kv_blocks
+        self._kv_ff, self._kv_fd = ff.update(nu), fd.update(nu)
+        self._kv_diag = self._kv_ff.diagonal()
 
     def _viscous_solve(self, dt: float, rhs: np.ndarray) -> None:
         """Solve ``(M/dt + nu K) dU = rhs`` on the free velocity nodes into ``_du_free`` (warm start from the
@@ -448,6 +486,8 @@ class CBSSolver:
         self.u = np.zeros((n, 3)) if u0 is None else np.array(u0, dtype=float)
         self.p = np.zeros(n)
         self._p0_free = np.zeros(len(self.free))
+        if self.lumped is not None:
+            self.lumped.pc = self._pc0.copy()
         self.nut_hat = None if self.turbulence is None else self.turbulence.initial(n)
         if self.viscous == "implicit":
             self._du_free[:] = 0.0
@@ -458,6 +498,8 @@ class CBSSolver:
     def state(self) -> dict:
         """Every array and scalar needed to continue the run bit for bit (for checkpoints)."""
         st = {"u": self.u, "p": self.p, "p0_free": self._p0_free, "t": self.t, "step": self.step_count}
+        if self.lumped is not None:
+            st["outlet_pc"] = self.lumped.pc.copy()
         if self.nut_hat is not None:
             st["nut_hat"] = self.nut_hat
         if self.viscous == "implicit":
@@ -472,6 +514,8 @@ class CBSSolver:
         self.p = np.array(st["p"], dtype=float)
         self._p0_free = np.array(st["p0_free"], dtype=float)
         self.t, self.step_count = float(st["t"]), int(st["step"])
+        if self.lumped is not None:
+            self.lumped.pc = np.array(st["outlet_pc"], dtype=float)
         if self.turbulence is not None:
             self.nut_hat = np.array(st["nut_hat"], dtype=float)
         if self.viscous == "implicit":
@@ -486,11 +530,19 @@ class CBSSolver:
         speed = np.asarray(self.inlet_speed(t), dtype=float)
         u[self.inlet_nodes[self._inlet_free]] = speed[self._inlet_free, None] * self.inlet_dir
 
-    def element_viscosity(self) -> np.ndarray:
-        """Effective kinematic viscosity per element, m^2/s, shape (m,)."""
-        if self.turbulence is None:
+    def molecular_viscosity(self) -> np.ndarray:
+        """Kinematic viscosity of the fluid per element, m^2/s, shape (m,): ``nu``, or the ``rheology``'s at the
+        element's shear rate."""
+        if self.rheology is None:
             return np.full(len(self.mesh.tets), self.nu)
-        return self.nu + self.turbulence.nu_t(self.nut_hat)[self.mesh.tets].mean(axis=1)
+        return self.rheology.viscosity(shear_rate(self.velocity_gradients())) / self.rho
+
+    def element_viscosity(self, molecular: np.ndarray | None = None) -> np.ndarray:
+        """Effective kinematic viscosity per element (molecular plus turbulent), m^2/s, shape (m,)."""
+        nu = self.molecular_viscosity() if molecular is None else molecular
+        if self.turbulence is None:
+            return nu
+        return nu + self.turbulence.nu_t(self.nut_hat)[self.mesh.tets].mean(axis=1)
 
     def time_step(self, nu_e: np.ndarray) -> tuple[float, float]:
         """``(dt, CFL)`` for the current velocity: adaptive or fixed, and ``max |u_e| dt / h_e``.
@@ -525,13 +577,18 @@ class CBSSolver:
     def step(self, max_dt: float | None = None) -> StepInfo:
         """Advance one time step (at most ``max_dt`` s long); returns its diagnostics."""
         mesh, tets = self.mesh, self.mesh.tets
-        nu_e = self.element_viscosity()
+        molecular = self.molecular_viscosity()
+        nu_e = self.element_viscosity(molecular)
+        if self.rheology is not None and self.viscous == "implicit":
+            self._viscous_matrices(molecular)
         dt, cfl = self.time_step(nu_e)
         if max_dt is not None and max_dt < dt:
             dt, cfl = max_dt, cfl * max_dt / dt
         t1 = self.t + dt
         # 1. intermediate momentum
         asm.momentum_residual(tets, self.grads, self.volumes, self.u, nu_e, 0.5 * dt, self._resid)
+        if self.backflow > 0:
+            self._backflow_traction(self._resid)
         asm.lumped_gradient(tets, self.grads, self.volumes, self.p, self._gp)
         if self.viscous == "implicit":
             ustar = self._implicit_momentum(dt, t1)
@@ -559,15 +616,35 @@ class CBSSolver:
         asm.lumped_gradient(tets, self.grads, self.volumes, p, self._gp)
         u = ustar - (dt / self.mass)[:, None] * self._gp
         u[self.u_dirichlet] = ustar[self.u_dirichlet]
-        c = self._outlet_pressures(q0) if self.exact is None else np.zeros(len(self.outlets))
+        if self.exact is not None:
+            c = np.zeros(len(self.outlets))
+        elif self.lumped is not None:
+            c = self._lumped_pressures(q0, dt)
+        else:
+            c = self._outlet_pressures(q0)
         u += dt * np.tensordot(c, self.s, axes=1)
         p += c @ self.phi
         if self.turbulence is not None:
             self.nut_hat = self.turbulence.step(self.nut_hat, u, dt, nu_e)
         self.u, self.p, self.t = u, p, t1
         self.step_count += 1
-        return StepInfo(dt, cfl, self.inflow(u), q0 + self.flux_response @ c, self.outflows(u),
-                        self.pressure.iterations)
+        outflow = q0 + self.flux_response @ c
+        if self.lumped is not None:
+            self.lumped.advance(outflow, dt)
+        return StepInfo(dt, cfl, self.inflow(u), outflow, self.outflows(u), self.pressure.iterations)
+
+    def _backflow_traction(self, resid: np.ndarray) -> None:
+        """Add ``int_outlets N_i beta min(u.n, 0) u dS`` (lumped) to the momentum residual ``resid`` (n, 3)."""
+        u = self.u[self._out_nodes]
+        flux = np.minimum(np.einsum("ij,ij->i", u, self._out_w), 0.0)  # min(u.n, 0) times the node's area
+        np.add.at(resid, self._out_nodes, self.backflow * flux[:, None] * u)
+
+    def _lumped_pressures(self, q0: np.ndarray, dt: float) -> np.ndarray:
+        """Kinematic outlet pressures c (outlets,) that satisfy the lumped outlet laws with the consistent
+        fluxes ``q0 + flux_response @ c`` at the end of the step (module docstring)."""
+        r_eff, b = self.lumped.affine(dt)
+        r_eff, b = r_eff / self.rho, b / self.rho
+        return np.linalg.solve(np.eye(len(r_eff)) - r_eff[:, None] * self.flux_response, r_eff * q0 + b)
 
     def _outlet_pressures(self, q0: np.ndarray) -> np.ndarray:
         """Outlet pressures c (outlets,) for which outlets 0..N-2 carry ``split`` of the total consistent outflow

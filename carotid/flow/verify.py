@@ -26,6 +26,11 @@ criterion comes from an analytic solution or a published correlation, never from
   development length (centreline velocity at 99 % of its developed value) against the correlation of Durst
   et al. (2005).  Convection sets that length (0.6 D without it, 3 D with it at Re 50): the straight-pipe
   cases cannot see the convective and characteristic terms, which vanish there;
+* power-law fluid: flow of a shear-thinning fluid (``mu = k gamma_dot^(n-1)``) developing from a parabolic
+  inlet profile in a tube; centreline velocity, WSS and pressure gradient against the exact fully developed
+  power-law solution (implicit viscosity only);
+* RCR outlet: a three-element Windkessel outlet on a straight tube under a sinusoidal inflow; the outlet
+  pressure's mean, amplitude and phase against the analytic 0D impedance (implicit viscosity only);
 * Womersley: the built-in carotid waveform (alpha ~ 4.7) in a straight pipe five diameters long; velocity,
   WSS and axial pressure gradient over the section between two diameters from the inlet and two from the
   outlet against the analytic Womersley solution, relative to their peaks, after the start-up transient.
@@ -81,6 +86,8 @@ POISEUILLE = TubeSpec(n_square=8, n_core=4, n_layers=4, first_layer=0.06, growth
 SPLIT = TubeSpec(n_square=8, n_core=4, n_layers=4, first_layer=0.06, growth=1.25, n_axial=6, length=6.5)
 WOMERSLEY = TubeSpec(n_square=12, n_core=6, n_layers=5, first_layer=0.05, growth=1.25, n_axial=10, length=32.5)
 ENTRANCE = TubeSpec(n_square=6, n_core=3, n_layers=3, first_layer=0.2, growth=1.3, n_axial=39, length=39.0)
+# power-law tube: four diameters, about twice the development length of its flow
+POWER_LAW = TubeSpec(n_square=8, n_core=4, n_layers=4, first_layer=0.06, growth=1.25, n_axial=26, length=26.0)
 # Ethier-Steinman case: tube radius (mm; the solution's length scale), Reynolds number U L / nu, run length in
 # convective times L / U
 ES_RADIUS, ES_RE, ES_DURATION = 3.0, 20.0, 2.0
@@ -412,6 +419,108 @@ def ethier_steinman(size: float, layers: int, steps: int, viscous: str = "explic
             "tetrahedra": len(mesh.tets)}
 
 
+def power_law(spec: TubeSpec = POWER_LAW, q: float = 1e-6, n: float = 0.6, k: float = 0.035,
+              max_steps: int = 6000, tol: float = 1e-3, viscous: str = "implicit") -> dict:
+    """Power-law flow (``mu = k gamma_dot^(n-1)``) developing in a straight tube from a parabolic inlet, from rest.
+
+    The exact solution for the flow rate Q in a pipe of radius R (mean speed U = Q / (pi R^2)):
+    ``u(r) = U (3n + 1)/(n + 1) [1 - (r/R)^((n + 1)/n)]``, ``tau_w = k ((3n + 1)/n U/R)^n`` and
+    ``dp/dz = -2 tau_w / R`` (e.g. Bird, Armstrong & Hassager 1987, Dynamics of Polymeric Liquids, vol. 1).
+    The inlet carries the Newtonian (parabolic) profile of the same flow, whose centreline speed 2U exceeds
+    the power law's (1.75 U for n = 0.6), so the profile must develop: the tube is four diameters long, about
+    twice the development length at this Reynolds number (about 25), and centreline velocity, WSS and axial
+    pressure gradient are taken between 60 % and 90 % of its length.  The solver's element viscosity follows
+    the law (:class:`carotid.flow.rheology.Rheology`, ``gamma_dot`` held above 0.01 1/s).
+
+    Returns
+    -------
+    dict
+        ``centreline_error``, ``wss_mean_error``, ``pressure_gradient_error`` (relative, signed),
+        ``wss_max_error`` (relative, absolute), ``steps``, ``residual``, ``tetrahedra``, ``n``.
+    """
+    from carotid.flow.cbs import CBSSolver
+    from carotid.flow.rheology import Rheology
+    from carotid.flow.wss import WallShear
+
+    mesh = tube_mesh(spec)
+    r = spec.radius * 1e-3
+    u_mean = q / (np.pi * r**2)
+    nodes, pts, _ = mesh.face_patch(2)
+    rr = np.minimum(np.hypot(pts[:, 0], pts[:, 1]) / r, 1.0)
+    profile = 2.0 * u_mean * (1 - rr**2)
+    law = Rheology("power", n=n, k=k)
+    solver = CBSSolver(mesh, lambda t: profile, NU, safety=0.8, viscous=viscous, rheology=law, rho=RHO,
+                       velocity_scale=2 * u_mean)
+    solver.reset()
+    residual, _ = _run_to_steady(solver, max_steps, tol)
+    tau_exact = k * ((3 * n + 1) / n * u_mean / r) ** n
+    rr = np.hypot(mesh.points[:, 0], mesh.points[:, 1])
+    z = mesh.points[:, 2] / 1e-3
+    axis = (rr < 1e-9) & (z > 0.6 * spec.length) & (z < 0.9 * spec.length)
+    wall = WallShear(mesh, solver.volumes)
+    zw = z[wall.nodes]
+    tau = wall.nodes_wss(wall.faces_wss(solver.velocity_gradients(), law))[(zw > 0.6 * spec.length)
+                                                                            & (zw < 0.9 * spec.length), 2]
+    part = (z > 0.6 * spec.length) & (z < 0.9 * spec.length)
+    dpdz = RHO * axial_gradient(mesh.points[part, 2], solver.p[part])
+    return {"centreline_error": float(solver.u[axis, 2].mean() / (u_mean * (3 * n + 1) / (n + 1)) - 1),
+            "wss_mean_error": float(tau.mean() / tau_exact - 1),
+            "wss_max_error": float(np.abs(tau / tau_exact - 1).max()),
+            "pressure_gradient_error": float(dpdz / (-2 * tau_exact / r) - 1), "steps": solver.step_count,
+            "residual": residual, "tetrahedra": len(mesh.tets), "n": n}
+
+
+def rcr_outlet(spec: TubeSpec = SPLIT, period: float = 0.5, steps_per_period: int = 200, periods: int = 3,
+               viscous: str = "implicit") -> dict:
+    """A straight tube with a three-element Windkessel outlet under a sinusoidal inflow, from rest.
+
+    Inflow ``Q(t) = Q0 (1 + 0.5 sin(omega t))`` (Q0 = 6 mL/s) with the developed Womersley profile; the
+    outlet is an RCR with ``R_p = 0.1 R_T``, ``R_d = 0.9 R_T`` (``R_T Q0`` = 93 mmHg) and
+    ``omega R_d C = 1``.  Over the last period, the mean and the first harmonic of the outlet pressure are
+    compared with the analytic 0D solution ``P = Z(0) Q0 + |Z(omega)| Q1 sin(omega t + arg Z(omega))``,
+    ``Z = R_p + R_d / (1 + i omega R_d C)``: what the implicitly coupled backward-Euler law must give
+    (its own error is ``O(omega dt)``).
+
+    Returns
+    -------
+    dict
+        ``mean_error``, ``amplitude_error`` (relative, signed), ``phase_error`` (relative to the exact phase
+        lag, signed), ``phase_deg`` and ``expected_phase_deg``, ``steps``, ``tetrahedra``.
+    """
+    from carotid.flow.cbs import CBSSolver
+    from carotid.flow.outlets import MMHG, OutletModel
+    from carotid.flow.waveform import Waveform
+
+    mesh = tube_mesh(spec)
+    omega, q0 = 2 * np.pi / period, 6e-6
+    t = np.linspace(0.0, period, 65)[:-1]
+    wave = Waveform(period, t, q0 * (1 + 0.5 * np.sin(omega * t)))
+    r_total = 93.0 * MMHG / q0
+    rd = 0.9 * r_total
+    model = OutletModel([0.1 * r_total], [1.0 / (omega * rd)], [rd])
+    expected = model.impedance([0.0, omega])[0]
+    profile = section_profile(mesh, wave, 2)
+    dt = period / steps_per_period
+    solver = CBSSolver(mesh, profile.velocity, NU, dt=dt, viscous=viscous, outlets=model, rho=RHO,
+                       velocity_scale=2 * q0 / mesh.face_area(2))
+    solver.reset()
+    nodes = mesh.face_nodes(3)
+    times, pressure = [], []
+    for _ in range(periods * steps_per_period):
+        solver.step()
+        times.append(solver.t)
+        pressure.append(RHO * solver.p[nodes].mean())
+    times, pressure = np.array(times[-steps_per_period:]), np.array(pressure[-steps_per_period:])
+    first = 2.0 * np.mean(pressure * np.exp(-1j * omega * times))  # P1 with P = Re(P1 e^{i w t})
+    exact_first = expected[1] * (-0.5j * q0)  # Q1 = 0.5 q0 sin(wt) = Re(-0.5i q0 e^{i w t})
+    phase, exact_phase = np.angle(first / (-0.5j * q0)), np.angle(expected[1])
+    return {"mean_error": float(pressure.mean() / (expected[0].real * q0) - 1),
+            "amplitude_error": float(abs(first) / abs(exact_first) - 1),
+            "phase_error": float(phase / exact_phase - 1), "phase_deg": float(np.degrees(phase)),
+            "expected_phase_deg": float(np.degrees(exact_phase)), "steps": solver.step_count,
+            "tetrahedra": len(mesh.tets)}
+
+
 def womersley(spec: TubeSpec | None = None, window: float = 1.0, samples: int = 24, settle: float = 0.5,
               n_harmonics: int = 10, viscous: str = "explicit") -> dict:
     """The carotid waveform in a straight tube with the generalised Womersley inlet profile, from rest.
@@ -621,6 +730,21 @@ def solver_cases(viscous: str, quick: bool):
            f"P1 int u.n: outlet fractions off by {100 * s['split_error_p1']:.2f} points (<=2), imbalance "
            f"{_pct(s['imbalance_p1'])} (<=1%); consistent fluxes (imposed): {s['split_error']:.1e}, "
            f"{s['imbalance']:+.1e}", s)
+    if viscous == "implicit":  # explicit, the power law's high low-shear viscosity would bind the step
+        w = power_law(viscous=viscous)
+        yield ("power-law fluid", abs(w["centreline_error"]) <= 0.02 and abs(w["wss_mean_error"]) <= 0.02
+               and abs(w["pressure_gradient_error"]) <= 0.02,
+               f"n {w['n']:g}, developed from a parabolic inlet, from rest: centreline "
+               f"{_pct(w['centreline_error'])}, WSS mean {_pct(w['wss_mean_error'])}, dp/dz "
+               f"{_pct(w['pressure_gradient_error'])} (all <=2%), {w['tetrahedra']} tets, {w['steps']} steps", w)
+    if viscous == "implicit":  # its fixed step (period / 200) is above the explicit limit of the wall layer
+        r = rcr_outlet(viscous=viscous)
+        yield ("RCR outlet", abs(r["mean_error"]) <= 0.02 and abs(r["amplitude_error"]) <= 0.02
+               and abs(r["phase_error"]) <= 0.02,
+               f"sinusoidal inflow, outlet pressure over the third period against the 0D impedance: mean "
+               f"{_pct(r['mean_error'])}, first harmonic amplitude {_pct(r['amplitude_error'])}, phase "
+               f"{r['phase_deg']:.2f} deg for {r['expected_phase_deg']:.2f} ({_pct(r['phase_error'])}) (all <=2%), "
+               f"{r['steps']} steps", r)
     e = entrance(viscous=viscous)
     yield ("entrance length", abs(e["length_error"]) <= 0.1,
            f"Re {e['re']:.0f}, plug inlet, from rest: centreline at 99% after {e['development_length_d']:.2f} D, "

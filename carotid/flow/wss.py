@@ -80,9 +80,14 @@ class WallShear:
         w = np.where(self.layered, self.y1 / np.maximum(self.y2 - self.y1, 1e-300), 0.0)
         return g1 - w[:, None, None] * (g2 - g1)
 
-    def faces_wss(self, grad_e: np.ndarray, mu: float) -> np.ndarray:
-        """WSS vector on each wall triangle, Pa, shape (f, 3)."""
+    def faces_wss(self, grad_e: np.ndarray, mu) -> np.ndarray:
+        """WSS vector on each wall triangle, Pa, shape (f, 3), for the dynamic viscosity ``mu`` (Pa s): a number,
+        or a :class:`carotid.flow.rheology.Rheology` evaluated at each face's shear rate."""
+        from carotid.flow.rheology import Rheology, shear_rate
+
         g = self.face_gradients(grad_e)
+        if isinstance(mu, Rheology):
+            mu = mu.viscosity(shear_rate(g))[:, None]
         tau = mu * np.einsum("fij,fj->fi", g + g.transpose(0, 2, 1), self.normals_in)
         return tau - np.einsum("fi,fi->f", tau, self.normals_in)[:, None] * self.normals_in
 
