@@ -30,12 +30,64 @@ import numpy as np
 from carotid.config import Config
 from carotid.errors import CarotidError, check_ranges
 from carotid.flow.indices import HIGH_OSI, LOW_TAWSS_PA, area_fraction, node_areas
+from carotid.flow.regions import INDEX_UNITS, REGION_INDICES, REGION_NAMES
 from carotid.io import atomic_path, read_json, write_json
 from carotid.pipeline import PROGRESS_SECONDS, STAGES, format_duration, read_case, run_stage
 
 BATCH_RANGES = {"workers": (1, 256), "retries": (0, 100)}  # LocalCluster processes; retries of a stage
 SIGNIFICANT_DIGITS = 4  # of the real numbers in cohort.csv
 STAGE_NAMES = tuple(stage.name for stage in STAGES if stage.runner)
+
+# The bifurcation geometry columns (geometry.json, carotid.centerline.features.bifurcation_geometry): column ->
+# (dotted key path in it, unit, meaning).
+GEOMETRY_KEYS = {
+    "bifurcation_angle_deg": ("bifurcation_angle_deg", "deg", "angle between the ICA and ECA directions (principal "
+                              "axes of the centerlines 1-3 CCA diameters from the bifurcation point)"),
+    "ica_angle_deg": ("ica_angle_deg", "deg", "angle between the ICA direction and the CCA's continuation"),
+    "eca_angle_deg": ("eca_angle_deg", "deg", "angle between the ECA direction and the CCA's continuation"),
+    "ica_cca_area_ratio": ("ica_cca_area_ratio", "ratio", "ICA / CCA median section area (CCA 1-3 diameters below "
+                           "the bifurcation point, ICA from 2 CCA diameters above to its end)"),
+    "bifurcation_area_ratio": ("bifurcation_area_ratio", "ratio", "(ICA + ECA) / CCA median section area, sections "
+                               "as ica_cca_area_ratio"),
+    "bulb_diameter_ratio": ("bulb_diameter_ratio", "ratio", "largest ICA inscribed diameter 0.5-3 CCA diameters "
+                            "above the bifurcation point over the CCA diameter"),
+    "bulb_length_mm": ("bulb_end_mm", "mm", "arc length of the bulb region along the ICA from the bifurcation point"),
+    **{f"{b.lower()}_{key}": (f"branches.{b}.{key}", unit, f"{b} {text}") for b in ("CCA", "ICA", "ECA")
+       for key, unit, text in (("tortuosity", "ratio", "tortuosity, arc length / chord - 1 over the whole branch"),
+                               ("planarity_deg", "deg", "planarity: angle of its direction out of the plane of the "
+                                                        "other two branches' directions"))},
+}
+GEOMETRY_COLUMNS = {name: (unit, text) for name, (_, unit, text) in GEOMETRY_KEYS.items()}
+
+# The wall region columns (flow/summary.json regions.statistics, carotid.flow.regions), each "REGION_INDEX_STAT" with
+# a unit suffix, or "REGION_area_mm2" and "REGION_..._area_fraction".
+_SUFFIX = {"Pa": "_pa", "": "", "1/Pa": "_per_pa", "Pa/s": "_pa_per_s"}
+
+
+def _region_keys() -> dict:
+    """cohort.csv column -> (region, index or None, statistic) of the wall region statistics."""
+    keys = {}
+    for region in REGION_NAMES[:-1]:  # not "other"
+        name = region.lower()
+        keys[f"{name}_area_mm2"] = (region, None, "area_mm2")
+        keys.update({f"{name}_{index.lower()}_{stat}{_SUFFIX[INDEX_UNITS[index]]}": (region, index, stat)
+                     for index in REGION_INDICES for stat in ("mean", "p5", "p95")})
+        keys.update({f"{name}_{fraction}_area_fraction": (region, None, f"{fraction}_area_fraction")
+                     for fraction in ("low_tawss", "high_osi", "low_tawss_high_osi")})
+    return keys
+
+
+REGION_KEYS = _region_keys()
+_STATS = {"mean": "area-weighted mean", "p5": "5th percentile (by area)", "p95": "95th percentile (by area)"}
+_FRACTIONS = {"low_tawss_area_fraction": f"fraction of its area with TAWSS below {LOW_TAWSS_PA} Pa",
+              "high_osi_area_fraction": f"fraction of its area with OSI above {HIGH_OSI}",
+              "low_tawss_high_osi_area_fraction": f"fraction of its area with both TAWSS < {LOW_TAWSS_PA} Pa and OSI "
+                                                  f"> {HIGH_OSI}"}
+REGION_COLUMNS = {
+    name: (("mm^2", f"{region} region: wall area") if stat == "area_mm2" else
+           ("fraction", f"{region} region: {_FRACTIONS[stat]}") if index is None else
+           (INDEX_UNITS[index], f"{region} region: {index}, {_STATS[stat]}"))
+    for name, (region, index, stat) in REGION_KEYS.items()}
 
 # Every cohort.csv column: (unit, meaning), written to cohort.json.  Empty cells: not available for that case.
 COHORT_COLUMNS = {
@@ -66,6 +118,8 @@ COHORT_COLUMNS = {
                                       f"{HIGH_OSI}"),
     "low_tawss_area_fraction": ("fraction", f"fraction of the wall area where the time-averaged wall shear stress "
                                             f"is below {LOW_TAWSS_PA} Pa"),
+    **GEOMETRY_COLUMNS,
+    **REGION_COLUMNS,
     **{f"seconds_{name}": ("s", f"time the {name} stage took when it ran") for name in STAGE_NAMES},
     "seconds_total": ("s", "time of all the stages that ran"),
 }
@@ -148,6 +202,15 @@ def _wall_area_fractions(path: Path) -> tuple:
     return area_fraction(osi, areas, HIGH_OSI), area_fraction(-tawss, areas, -LOW_TAWSS_PA)  # -TAWSS above
 
 
+def _lookup(record: dict, *keys: str):
+    """``record[k0][k1]...``, or "" (an empty cell) when a key is missing."""
+    for key in keys:
+        if not isinstance(record, dict) or key not in record:
+            return ""
+        record = record[key]
+    return record
+
+
 def case_summary(case: Case, case_dir: Path, outcome: dict) -> dict:
     """One ``cohort.csv`` row from a case's outcome and the result files it has."""
     record = read_case(case_dir) if (case_dir / "case.json").exists() else {"stages": {}}
@@ -162,6 +225,8 @@ def case_summary(case: Case, case_dir: Path, outcome: dict) -> dict:
     gci = read_json(case_dir / "flow" / "convergence.json").get("branches", {}).get("TAWSS", {}).get(
         "whole wall", {}).get("gci_fine21")
     osi, low_tawss = _wall_area_fractions(case_dir / "flow" / "indices.vtp")
+    shape = geometry.get("bifurcation_geometry") or {}
+    regions = flow.get("regions", {}).get("statistics", {})
     return {
         "case_id": case.case_id, "status": outcome["status"], "failed_stage": outcome.get("failed_stage", ""),
         "reason": outcome.get("reason", ""), "image": str(case.image),
@@ -175,6 +240,9 @@ def case_summary(case: Case, case_dir: Path, outcome: dict) -> dict:
         "tawss_last_cycle_change": "" if change is None else change,
         "tawss_gci_percent": "" if gci is None else 100.0 * gci,
         "osi_area_fraction": osi, "low_tawss_area_fraction": low_tawss,
+        **{name: _lookup(shape, *key.split(".")) for name, (key, _, _) in GEOMETRY_KEYS.items()},
+        **{name: _lookup(regions, region, *filter(None, (index, stat)))
+           for name, (region, index, stat) in REGION_KEYS.items()},
         **{f"seconds_{name}": seconds.get(name, "") for name in STAGE_NAMES},
         "seconds_total": sum(seconds.values()),
     }

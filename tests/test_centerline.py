@@ -206,6 +206,9 @@ def test_stenosis_grading_of_an_analytic_profile():
     assert g["ecst"] == pytest.approx(0.6, abs=1e-6)
     assert g["area_reduction"] == pytest.approx(0.84, abs=1e-6)
     assert g["arclength_from_bifurcation_mm"] == pytest.approx(15.0, abs=0.1)
+    assert g["extent_from_bifurcation_mm"] == pytest.approx([13.0, 17.0], abs=0.1)  # full width at half depth
+    cca = stenosis(Branch("CCA", np.stack([0 * s, 0 * s, s], axis=1), r[::-1]), from_end=True)  # towards the bifurcation
+    assert cca["extent_from_bifurcation_mm"] == pytest.approx([13.0, 17.0], abs=0.1)
     # A taper towards the outlet is not a stenosis.
     taper = stenosis(Branch("ICA", np.stack([0 * s, 0 * s, s], axis=1), 3.0 - s / 40.0))
     assert taper["nascet"] == 0.0 and taper["ecst"] < 1e-9

@@ -61,9 +61,62 @@ def test_representative_size_and_bad_input():
         grid_convergence([1.0, 2.0], [1.0, 2.0])
 
 
-def test_convergence_study_plumbing_on_a_tiny_tube(tmp_path):
-    # end to end on a capped tube (wall, inlet, outlet) split into two "branches" along its axis: three meshes,
-    # three short runs, per-branch and per-node GCI written; the GCI itself is verified above
+def test_coarsened_surface_scales_the_wall_and_keeps_the_caps():
+    # the convergence levels' walls: edges factor times as long (shorter for factor < 1), same labels, caps in
+    # their planes, the same lumen (volume within 3 %: the chords of 0.68 mm edges on a 1.5 mm radius cut 2 %)
+    from carotid.flow.convergence import coarsened_surface, local_edge_length
+    from carotid.mesh.boundary import check_surface
+    from carotid.mesh.mesher import median_edge
+    from carotid.mesh.testing import labelled_tube
+    from carotid.surface.mesh import from_polydata, signed_volume
+
+    surface = labelled_tube(radius=1.5, length=4.0, size=0.3)
+    points, faces, labels = from_polydata(surface)
+    edge = median_edge(check_surface(surface))
+    assert np.median(local_edge_length(points, faces)) == pytest.approx(edge, rel=0.1)
+    for factor in (1.5, 2.25, 1 / 1.5):
+        coarse = coarsened_surface(surface, factor)
+        p, f, lab = from_polydata(coarse)
+        assert median_edge(check_surface(coarse)) == pytest.approx(factor * edge, rel=0.15)
+        assert set(np.unique(lab)) == {1, 2, 3}
+        np.testing.assert_allclose(p[np.unique(f[lab == 2]), 2], 0.0, atol=1e-9)
+        np.testing.assert_allclose(p[np.unique(f[lab == 3]), 2], 4.0, atol=1e-9)
+        assert signed_volume(p, f) == pytest.approx(signed_volume(points, faces), rel=0.03)
+
+
+def test_wall_interpolation_reproduces_a_linear_field():
+    # coarse-level indices are carried to the case wall's nodes linearly: exact for a linear field on a plane,
+    # from one triangulation to another
+    import pyvista as pv
+
+    from carotid.flow.convergence import wall_interpolation
+
+    coarse = pv.Plane(i_size=2.0, j_size=2.0, i_resolution=3, j_resolution=4).triangulate()
+    fine = pv.Plane(i_size=2.0, j_size=2.0, i_resolution=11, j_resolution=7).triangulate()
+    query = np.asarray(fine.points) + np.array([0.0, 0.0, 0.05])  # off the plane: the closest point is used
+    vertices, weights = wall_interpolation(coarse, query)
+    field = np.asarray(coarse.points) @ np.array([1.5, -0.7, 0.0]) + 2.0
+    np.testing.assert_allclose(weights.sum(axis=1), 1.0)
+    assert weights.min() >= -1e-12
+    np.testing.assert_allclose((field[vertices] * weights).sum(axis=1),
+                               np.asarray(fine.points) @ np.array([1.5, -0.7, 0.0]) + 2.0, atol=1e-12)
+
+
+def test_convergence_options():
+    from carotid.flow.command import build_parser
+
+    args = build_parser().parse_args(["simulate", "case", "--convergence"])
+    assert (args.cycles, args.time_levels, args.workers, args.refinement, args.case_mesh) == (None, True, 2, 1.5, True)
+    args = build_parser().parse_args(["simulate", "case", "--convergence", "--no-time-levels", "--workers", "1",
+                                      "--no-case-mesh"])
+    assert (args.time_levels, args.workers, args.case_mesh) == (False, 1, False)
+
+
+def test_convergence_study_on_a_tiny_tube(tmp_path):
+    # end to end on a capped tube (wall, inlet, outlet) split into two "branches" along its axis, in two worker
+    # processes: the case mesh is level 0 and levels 1, 2 are meshed from the surface remeshed with longer edges
+    # (the wall is coarsened too), the coarsest runs again at 1/2 and 1/4 of its step; per-branch and per-node
+    # GCI written, in space and in time.  The GCI itself is verified above.
     import json
 
     import pyvista as pv
@@ -84,19 +137,42 @@ def test_convergence_study_plumbing_on_a_tiny_tube(tmp_path):
     write_centerlines(Centerlines([Branch("CCA", z[:4], np.ones(4)), Branch("ICA", z[3:], np.ones(4))], z[3]),
                       tmp_path)
     t = np.linspace(0.0, 0.02, 6, endpoint=False)
-    params = FlowParameters(cycles=0.1, waveform=Waveform(0.02, t, np.full(6, 0.2e-6)), output_every=2)
-    result = run_convergence(tmp_path, params, refinement=1.5)
+    params = FlowParameters(cycles=0.5, waveform=Waveform(0.02, t, np.full(6, 0.2e-6)), output_every=2)
+    seen = []
+    result = run_convergence(tmp_path, params, refinement=1.5, workers=2, progress=seen.append)
 
     recorded = json.loads((tmp_path / "mesh_quality.json").read_text())["parameters"]
-    finest = coarsened_mesh_parameters(recorded, 1.5 ** -2)
-    assert finest["size"] == pytest.approx(0.3 / 2.25) and finest["layers"] == 7  # round(3 * 2.25)
-    assert finest["ratio"] ** 7 == pytest.approx(1.2 ** 3)  # same grading span
-    h = [level["h_mm"] for level in result["levels"]]
+    coarsest = coarsened_mesh_parameters(recorded, 1.5 ** 2)
+    assert coarsest["size"] == pytest.approx(0.3 * 2.25) and coarsest["layers"] == 2  # max(2, round(3 / 2.25))
+    assert coarsest["ratio"] ** 2 == pytest.approx(1.2 ** 3)  # same grading span
+    levels = result["levels"]
+    assert levels[0]["tetrahedra"] == quality["elements"]["tetrahedra"]  # level 0 is the case mesh itself
+    assert [level["edge_factor"] for level in levels] == pytest.approx([1.0, 1.5, 2.25])
+    h = [level["h_mm"] for level in levels]
     assert h[0] < h[1] < h[2]
+    walls = [level["wall_triangles"] for level in levels]
+    assert walls[0] > 1.8 * walls[1] and walls[1] > 1.8 * walls[2]  # about 1.5^2 fewer wall triangles per level
+    edges = [level["wall_edge_mm"] for level in levels]
+    assert edges[1] / edges[0] == pytest.approx(1.5, rel=0.15) and edges[2] / edges[1] == pytest.approx(1.5, rel=0.15)
     assert set(result["branches"]["TAWSS"]) == {"CCA", "ICA", "whole wall"}
     for row in result["branches"]["TAWSS"].values():
         assert len(row["phi_fine_to_coarse"]) == 3 and row["status"] in ("monotonic", "oscillatory", "divergent",
                                                                          "indeterminate")
+    temporal = result["time"]
+    assert [level["name"] for level in temporal["levels"]] == ["level2", "level2_dt2", "level2_dt4"]
+    steps = [level["steps"] for level in temporal["levels"]]
+    assert steps[0] < steps[1] < steps[2] and temporal["levels"][0]["steps"] == levels[2]["steps"]
+    assert set(temporal["branches"]["TAWSS"]) == {"CCA", "ICA", "whole wall"}
     gci_map = pv.read(tmp_path / "flow" / "convergence.vtp")
+    assert gci_map.n_points == pv.read(tmp_path / "flow" / "convergence" / "level0" / "flow" / "indices.vtp").n_points
     assert {"TAWSS_GCI", "OSI_ext", "RRT_p", "branch"} <= set(gci_map.point_data.keys())
-    assert json.loads((tmp_path / "flow" / "convergence.json").read_text())["refinement"] == 1.5
+    written = json.loads((tmp_path / "flow" / "convergence.json").read_text())
+    assert written["refinement"] == 1.5 and written["time"]["mesh_level"] == 2
+    assert seen and seen[-1]["fraction"] == pytest.approx(1.0)
+    assert set(seen[-1]["runs"]) == {"level0", "level1", "level2", "level2_dt2", "level2_dt4"}
+
+    # without the case mesh: the levels are the case mesh coarsened by 1.5, 1.5^2 and 1.5^3 (rebuilt identically)
+    coarser = run_convergence(tmp_path, params, refinement=1.5, time_levels=False, workers=1, case_mesh=False)
+    assert [level["edge_factor"] for level in coarser["levels"]] == pytest.approx([1.5, 2.25, 3.375])
+    assert coarser["levels"][0]["tetrahedra"] == levels[1]["tetrahedra"] and coarser["time"] is None
+    assert coarser["case_level"] is None and result["case_level"] == 0

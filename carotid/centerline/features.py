@@ -23,7 +23,14 @@ non-circular section, the quantity angiographic grading approximates):
 * ECST = 1 - d_min / d_local, with d_local the estimated original diameter
   at the lesion.  A lesion in a wide bulb can have a positive ECST and a zero
   NASCET (its narrowest diameter still exceeds the distal one), as clinically;
-* area reduction = 1 - (d_min / d_local)^2 (circular sections).
+* area reduction = 1 - (d_min / d_local)^2 (circular sections);
+* the lesion's extent is its full width at half depth: the stretch around the
+  narrowest section where the narrowing 1 - r / r_healthy is at least half its
+  value there.
+
+The bifurcation geometry (:func:`bifurcation_geometry`) follows the centerline
+definitions of the carotid geometric-risk studies; its landmarks and formulas
+are stated there.
 """
 
 from __future__ import annotations
@@ -95,6 +102,32 @@ def local_healthy_radius(s: np.ndarray, r: np.ndarray, reach: float) -> np.ndarr
     return r[i] + t * (r[j] - r[i])
 
 
+def healthy_profile(branch: Branch) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Arc length, the points away from the branch ends, and the estimated original radius there.
+
+    One end radius is skipped at each end (the radius there reflects the junction or the cut); the original
+    radius is :func:`local_healthy_radius` with a reach of four median radii.
+
+    Parameters
+    ----------
+    branch : Branch
+        Points ordered with the flow.
+
+    Returns
+    -------
+    (s, valid, healthy) or None
+        ``s`` (n,) arc length from the branch's first point, mm; ``valid`` (m,) indices of the points away
+        from the ends; ``healthy`` (m,) the original radius at those points, mm.  None when fewer than five
+        points are away from the ends.
+    """
+    r = branch.radii
+    s = arclength(branch.points)
+    valid = np.flatnonzero((s >= r[0]) & (s <= s[-1] - r[-1]))
+    if len(valid) < 5:
+        return None
+    return s, valid, local_healthy_radius(s[valid], r[valid], 4.0 * float(np.median(r[valid])))
+
+
 def stenosis(branch: Branch, from_end: bool = False) -> dict | None:
     """Grade the most narrowed section of a branch.
 
@@ -111,17 +144,23 @@ def stenosis(branch: Branch, from_end: bool = False) -> dict | None:
         ``location_mm`` (3,), ``arclength_from_bifurcation_mm``, ``min_diameter_mm``,
         ``distal_diameter_mm``, ``local_diameter_mm``, ``nascet``, ``ecst``, ``area_reduction``
         (fractions, 0 for no narrowing), ``distal_reference`` ("distal", or "none" when the narrowest
-        section is at the distal end of the branch: a taper, graded 0); None if the branch is too short.
+        section is at the distal end of the branch: a taper, graded 0), ``extent_from_bifurcation_mm``
+        (the lesion's full width at half depth, [near, far] arc lengths from the bifurcation, mm); None if
+        the branch is too short.
     """
-    p, r = branch.points, branch.radii
-    s = arclength(p)
-    valid = np.flatnonzero((s >= r[0]) & (s <= s[-1] - r[-1]))
-    if len(valid) < 5:
+    profile = healthy_profile(branch)
+    if profile is None:
         return None
-    healthy = local_healthy_radius(s[valid], r[valid], 4.0 * float(np.median(r[valid])))
-    pick = int(np.argmax(1.0 - r[valid] / np.maximum(healthy, 1e-9)))
+    s, valid, healthy = profile
+    p, r = branch.points, branch.radii
+    depth = 1.0 - r[valid] / np.maximum(healthy, 1e-9)
+    pick = int(np.argmax(depth))
     k, r_local = int(valid[pick]), float(healthy[pick])
     r_min = float(r[k])
+    outside = np.flatnonzero((depth < 0.5 * depth[pick]) | ((depth[pick] <= 0) & (np.arange(len(valid)) != pick)))
+    first = int(outside[outside < pick].max() + 1) if np.any(outside < pick) else 0
+    last = int(outside[outside > pick].min() - 1) if np.any(outside > pick) else len(valid) - 1
+    extent = s[valid[[first, last]]]
     after = valid[valid > k]
     reference = "distal"
     if len(after) >= 5 and s[after[-1]] - s[k] >= 2.0 * r_min:
@@ -146,6 +185,151 @@ def stenosis(branch: Branch, from_end: bool = False) -> dict | None:
         "ecst": max(0.0, 1.0 - r_min / r_local),
         "area_reduction": max(0.0, 1.0 - (r_min / r_local) ** 2),
         "distal_reference": reference,
+        "extent_from_bifurcation_mm": sorted((s[-1] - extent if from_end else extent).tolist()),
+    }
+
+
+# Landmarks of the bifurcation geometry, in CCA radii R of arc length from the bifurcation point (see
+# bifurcation_geometry).
+CCA_WINDOW = (2.0, 6.0)
+"""Upstream along the CCA (1 to 3 CCA diameters below the bifurcation point): its diameter, area and direction."""
+DIRECTION_WINDOW = (2.0, 6.0)
+"""Downstream along the ICA and ECA (1 to 3 CCA diameters): their directions."""
+DAUGHTER_START = 4.0
+"""Downstream along the ICA and ECA from 2 CCA diameters to their distal end (less one end radius): their
+reference diameter and area, beyond the junction and, in a normal ICA, beyond most of the bulb."""
+BULB_WINDOW = (1.0, 6.0)
+"""Downstream along the ICA (0.5 to 3 CCA diameters): where the widest section of the bulb is looked for."""
+BULB_EXCESS = 0.1
+"""The bulb is where the ICA radius exceeds its reference radius by more than this fraction."""
+
+
+def _window(s: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """Indices (m,) of the arc lengths ``s`` (n,) within [lo, hi] mm; ValueError when fewer than 3."""
+    inside = np.flatnonzero((s >= lo) & (s <= hi))
+    if len(inside) < 3:
+        raise ValueError(f"fewer than 3 centerline points between {lo:.3g} and {hi:.3g} mm from the bifurcation")
+    return inside
+
+
+def _direction(points: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """Unit principal axis (3,) of ``points`` (m, 3), pointing away from ``origin`` (3,)."""
+    centred = points - points.mean(axis=0)
+    axis = np.linalg.svd(centred, full_matrices=False)[2][0]
+    return axis if axis @ (points.mean(axis=0) - origin) >= 0 else -axis
+
+
+def _angle_deg(u: np.ndarray, v: np.ndarray) -> float:
+    """Angle between two unit vectors (3,), degrees."""
+    return float(np.degrees(np.arccos(np.clip(u @ v, -1.0, 1.0))))
+
+
+def bifurcation_geometry(cl: Centerlines) -> dict | None:
+    """Bifurcation angle, area ratios, bulb size, tortuosity and planarity of a carotid bifurcation.
+
+    The quantities of the carotid geometric-risk studies: Thomas et al. 2005 (Stroke 36:2450, "Variation in
+    the carotid bifurcation geometry of young versus older adults": bifurcation angle, ICA angle, ICA/CCA
+    diameter ratio and (ICA + ECA)/CCA "bifurcation area ratio", planarity, tortuosity as arc length over chord
+    minus one), Lee et al. 2008 (Stroke 39:2341, "Geometry of the carotid bifurcation predicts its exposure to
+    disturbed flow": bulb size as the maximum ICA/CCA diameter ratio, planarity, tortuosity) and Bijari et al.
+    2012 (J Biomech 45:1632, which revisits them).  Like those studies, the landmarks are placed along the
+    centerlines (VMTK-style, maximal inscribed sphere radii) in units of the CCA radius from the bifurcation
+    point.  The offsets are this function's own choice, stated here; the papers' landmarks differ in detail, so
+    values compare exactly between cases of this package and approximately with the published ones.  With s the
+    arc length from the bifurcation point along each branch (upstream along the CCA), r(s) the maximal
+    inscribed sphere radius and A(s) the lumen section area normal to the axis (``Branch.areas``, or pi r^2
+    when the centerlines carry none):
+
+    * R, the CCA radius: the median of r over s in [2, 6] rho, 1 to 3 diameters below the bifurcation
+      point, with rho the median r of the whole CCA (the first pass that places the window).  D_CCA = 2 R;
+      A_CCA is the median of A over s in [2, 6] R (``CCA_WINDOW``).
+    * Directions: the principal axis (least-squares line) of each branch's points over s in [2, 6] R
+      (``CCA_WINDOW``, ``DIRECTION_WINDOW``), pointing away from the bifurcation; the first CCA diameter
+      is left out, where the centerlines curve into one another.
+    * Bifurcation angle: between the ICA and ECA directions; ICA (ECA) angle: between the ICA (ECA)
+      direction and the CCA's continuation (minus the CCA direction); degrees.
+    * Planarity of each branch: the angle between its direction and the plane spanned by the other two
+      branches' directions, degrees; 0 for all three when the bifurcation lies in one plane.
+    * A_ICA, A_ECA: the median of A over s from 4 R (2 CCA diameters, ``DAUGHTER_START``) to one end radius
+      before the branch's end; ICA/CCA area ratio A_ICA / A_CCA; bifurcation area ratio
+      (A_ICA + A_ECA) / A_CCA.  Their diameters are twice the median of r over the same stretch.
+    * Bulb: the maximum ICA diameter 2 max r over s in [1, 6] R (``BULB_WINDOW``; the inscribed sphere
+      at the bifurcation point itself spans the junction), and its ratio to D_CCA.  The bulb ends where,
+      past that widest section, the ICA's original radius (:func:`local_healthy_radius`, which bridges a
+      stenosis in the bulb) falls to (1 + ``BULB_EXCESS``) times the ICA's reference radius (the median r
+      of its reference stretch above); 0 when the widest section does not exceed that.
+    * Tortuosity of each branch: arc length over chord minus one over the whole branch
+      (:func:`branch_features`).
+
+    Parameters
+    ----------
+    cl : Centerlines
+        With branches named CCA, ICA and ECA; the CCA runs to the bifurcation, the others from it.
+
+    Returns
+    -------
+    dict or None
+        ``cca_diameter_mm``, ``cca_area_mm2``, ``ica_diameter_mm``, ``ica_area_mm2``, ``eca_diameter_mm``,
+        ``eca_area_mm2``, ``ica_cca_area_ratio``, ``bifurcation_area_ratio``, ``bifurcation_angle_deg``,
+        ``ica_angle_deg``, ``eca_angle_deg``, ``bulb_max_diameter_mm``, ``bulb_diameter_ratio``,
+        ``bulb_end_mm`` (arc length from the bifurcation point along the ICA), and ``branches``: per branch
+        name ``tortuosity`` and ``planarity_deg``.  None without a CCA, ICA and ECA; ``{"reason": text}``
+        when a branch is too short for its landmarks.
+    """
+    names = [b.name for b in cl.branches]
+    if not {"CCA", "ICA", "ECA"} <= set(names):
+        return None
+    cca, ica, eca = cl.branch("CCA"), cl.branch("ICA"), cl.branch("ECA")
+    s_cca = arclength(cca.points)
+    s_cca = s_cca[-1] - s_cca  # upstream from the bifurcation
+    s_ica, s_eca = arclength(ica.points), arclength(eca.points)
+
+    def area(branch: Branch) -> np.ndarray:
+        return branch.areas if branch.areas is not None else np.pi * branch.radii ** 2
+
+    try:
+        rho = float(np.median(cca.radii))
+        first = _window(s_cca, CCA_WINDOW[0] * rho, CCA_WINDOW[1] * rho)
+        radius = float(np.median(cca.radii[first]))
+        in_cca = _window(s_cca, CCA_WINDOW[0] * radius, CCA_WINDOW[1] * radius)
+        directions, reference = {}, {}
+        for b, s in ((ica, s_ica), (eca, s_eca)):
+            window = _window(s, DIRECTION_WINDOW[0] * radius, DIRECTION_WINDOW[1] * radius)
+            directions[b.name] = _direction(b.points[window], b.points[0])
+            reference[b.name] = _window(s, DAUGHTER_START * radius, s[-1] - b.radii[-1])
+        in_bulb = _window(s_ica, BULB_WINDOW[0] * radius, BULB_WINDOW[1] * radius)
+    except ValueError as exc:
+        return {"reason": str(exc)}
+    directions["CCA"] = _direction(cca.points[in_cca], cca.points[-1])
+    a_cca = float(np.median(area(cca)[in_cca]))
+    a_ica, a_eca = (float(np.median(area(b)[reference[b.name]])) for b in (ica, eca))
+    r_ica = float(np.median(ica.radii[reference["ICA"]]))
+    widest = int(in_bulb[np.argmax(ica.radii[in_bulb])])
+    bulb_end = 0.0
+    threshold = (1.0 + BULB_EXCESS) * r_ica
+    profile = healthy_profile(ica)
+    if ica.radii[widest] > threshold and profile is not None:
+        s, valid, healthy = profile
+        fallen = valid[(valid > widest) & (healthy <= threshold)]
+        bulb_end = float(s[fallen[0]] if len(fallen) else s[valid[-1]])
+    planarity = {}
+    for name, others in (("CCA", ("ICA", "ECA")), ("ICA", ("CCA", "ECA")), ("ECA", ("CCA", "ICA"))):
+        normal = np.cross(directions[others[0]], directions[others[1]])
+        planarity[name] = float(np.degrees(np.arcsin(min(abs(directions[name] @ normal) /
+                                                         np.linalg.norm(normal), 1.0))))
+    return {
+        "cca_diameter_mm": 2.0 * radius, "cca_area_mm2": a_cca,
+        "ica_diameter_mm": 2.0 * r_ica, "ica_area_mm2": a_ica,
+        "eca_diameter_mm": 2.0 * float(np.median(eca.radii[reference["ECA"]])), "eca_area_mm2": a_eca,
+        "ica_cca_area_ratio": a_ica / a_cca, "bifurcation_area_ratio": (a_ica + a_eca) / a_cca,
+        "bifurcation_angle_deg": _angle_deg(directions["ICA"], directions["ECA"]),
+        "ica_angle_deg": _angle_deg(directions["ICA"], -directions["CCA"]),
+        "eca_angle_deg": _angle_deg(directions["ECA"], -directions["CCA"]),
+        "bulb_max_diameter_mm": 2.0 * float(ica.radii[widest]),
+        "bulb_diameter_ratio": float(ica.radii[widest]) / radius,
+        "bulb_end_mm": bulb_end,
+        "branches": {b.name: {"tortuosity": branch_features(b)["tortuosity"], "planarity_deg": planarity[b.name]}
+                     for b in (cca, ica, eca)},
     }
 
 
@@ -157,7 +341,7 @@ def geometry_features(cl: Centerlines) -> dict:
     dict
         ``bifurcation_mm`` (or None), ``branches`` (per branch: id, name, features, end points),
         ``stenosis`` (the ICA's grading, else the most severe), ``stenoses`` (every branch, most severe
-        first).
+        first), ``bifurcation_geometry`` (:func:`bifurcation_geometry`).
     """
     bif = None if not np.all(np.isfinite(cl.bifurcation)) else cl.bifurcation.tolist()
     branches, grades = [], []
@@ -170,4 +354,5 @@ def geometry_features(cl: Centerlines) -> dict:
     grades.sort(key=lambda g: (-g["nascet"], -g["ecst"]))
     ica = [g for g in grades if g["branch"] == "ICA"]
     return {"bifurcation_mm": bif, "branches": branches,
-            "stenosis": ica[0] if ica else (grades[0] if grades else None), "stenoses": grades}
+            "stenosis": ica[0] if ica else (grades[0] if grades else None), "stenoses": grades,
+            "bifurcation_geometry": bifurcation_geometry(cl)}

@@ -90,6 +90,33 @@ class Centerlines:
         return out
 
 
+def nearest_axis_points(points: np.ndarray, branches) -> tuple[np.ndarray, np.ndarray]:
+    """The centerline point nearest to each point: its branch and its index along that branch.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+        Query points (wall nodes, triangle centroids), mm.
+    branches : list of Branch
+        Centerline branches.
+
+    Returns
+    -------
+    branch : ndarray of int, shape (n,)
+        Index of the branch in ``branches``.
+    index : ndarray of int, shape (n,)
+        Index of the nearest point in that branch's ``points``.
+    """
+    from scipy.spatial import cKDTree
+
+    axis = np.concatenate([b.points for b in branches])
+    sizes = np.array([len(b.points) for b in branches])
+    owner = np.repeat(np.arange(len(branches)), sizes)
+    local = np.arange(len(axis)) - np.repeat(np.cumsum(sizes) - sizes, sizes)
+    nearest = cKDTree(axis).query(points)[1]
+    return owner[nearest], local[nearest]
+
+
 def branch_regions(points: np.ndarray, branches) -> np.ndarray:
     """Index of the branch whose axis passes nearest to each point.
 
@@ -104,8 +131,4 @@ def branch_regions(points: np.ndarray, branches) -> np.ndarray:
     -------
     ndarray of int, shape (n,)
     """
-    from scipy.spatial import cKDTree
-
-    axis = np.concatenate([b.points for b in branches])
-    owner = np.repeat(np.arange(len(branches)), [len(b.points) for b in branches])
-    return owner[cKDTree(axis).query(points)[1]]
+    return nearest_axis_points(points, branches)[0]

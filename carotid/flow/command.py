@@ -27,11 +27,15 @@ def cmd_simulate(args) -> int:
     from carotid.stages import FlowStageParameters
 
     case = Path(args.case_dir)
-    stage = FlowStageParameters(cycles=args.cycles, dt=args.dt or 0.0, waveform=str(args.waveform or ""),
+    cycles = args.cycles if args.cycles is not None else 1.0 if args.convergence else 3.0
+    stage = FlowStageParameters(cycles=cycles, dt=args.dt or 0.0, waveform=str(args.waveform or ""),
                                 split=list(_split(args.split) or []), turbulence=args.turbulence,
+                                outlets=args.outlets or ("split" if args.split else "murray"),
+                                mean_pressure_mmhg=args.mean_pressure, pulse_pressure_mmhg=args.pulse_pressure,
                                 viscous=args.viscous, pressure=args.pressure, output_every=args.output_every,
                                 checkpoint_every=args.checkpoint_every, force=args.force,
                                 flow_ml_s=args.flow or 0.0, rho=args.density, mu=args.viscosity,
+                                rheology=args.rheology,
                                 periodic_tol=args.periodic_tol)
     params = stage.validate().flow_parameters()
     mesh = FlowMesh.from_vtu(case / "mesh.vtu")
@@ -46,7 +50,7 @@ def cmd_simulate(args) -> int:
             bar.refresh()
 
     if args.convergence:
-        return _convergence(case, params, args.refinement, bar, progress)
+        return _convergence(case, params, args, bar)
     try:
         summary = simulate(mesh, case, params, resume=args.resume, progress=progress,
                            log=lambda line: bar.write(f"simulate: {line}", file=sys.stderr))
@@ -66,25 +70,47 @@ def cmd_simulate(args) -> int:
     return 0
 
 
-def _convergence(case: Path, params, refinement: float, bar, progress) -> int:
-    """``--convergence``: the three-level study of :func:`carotid.flow.convergence.run_convergence`, printed."""
+def _convergence(case: Path, params, args, bar) -> int:
+    """``--convergence``: the study of :func:`carotid.flow.convergence.run_convergence`, printed."""
     from carotid.flow.convergence import run_convergence
 
+    def progress(info: dict) -> None:
+        bar.n = info["fraction"]
+        bar.set_postfix_str(" ".join(f"{name} {100 * f:.0f}%" for name, f in info["runs"].items()), refresh=True)
+
     try:
-        result = run_convergence(case, params, refinement, log=lambda line: bar.write(f"convergence: {line}",
-                                                                                       file=sys.stderr),
-                                 progress=progress)
+        result = run_convergence(case, params, args.refinement, time_levels=args.time_levels, workers=args.workers,
+                                 case_mesh=args.case_mesh, progress=progress,
+                                 log=lambda line: bar.write(f"convergence: {line}", file=sys.stderr))
     finally:
         bar.close()
     sizes = ", ".join(f"{level['h_mm']:.3f}" for level in result["levels"])
-    print(f"grid convergence written to {case / 'flow' / 'convergence.json'} (h = {sizes} mm); mean TAWSS per "
-          "branch:")
-    for name, row in result["branches"]["TAWSS"].items():
-        gci = "n/a" if row["gci_fine21"] is None else f"{100 * row['gci_fine21']:.2f}%"
-        ext = "n/a" if row["phi_ext21"] is None else f"{row['phi_ext21']:.4g}"
-        print(f"  {name}: {row['phi_fine_to_coarse'][0]:.4g} Pa, extrapolated {ext} Pa, GCI {gci}, "
-              f"p = {row['p'] if row['p'] is None else round(row['p'], 2)} ({row['status']})")
+    finest = "the case mesh" if args.case_mesh else f"the case mesh coarsened by {args.refinement:g}"
+    print(f"convergence study written to {case / 'flow' / 'convergence.json'} in {result['seconds'] / 60:.1f} min; "
+          f"mean TAWSS per branch on the meshes of h = {sizes} mm (the first is {finest}):")
+    _print_rows(result["branches"]["TAWSS"])
+    if result["time"] is not None:
+        print("time step on the coarsest mesh (its step, then 1/2 and 1/4 of it): mean TAWSS per branch")
+        for name, row in result["time"]["branches"]["TAWSS"].items():
+            print(f"  {name}: {row['phi_fine_to_coarse'][2]:.4g} Pa, {_percent(row['default_change'])} change at half "
+                  f"the step, {_percent(row['default_e_ext'])} from the extrapolation to a zero step, "
+                  f"p = {row['p'] if row['p'] is None else round(row['p'], 2)} ({row['status']})")
     return 0
+
+
+def _print_rows(rows: dict) -> None:
+    """One line per branch of a :func:`carotid.flow.convergence.run_convergence` table: the finest value, the
+    extrapolated one, the GCI and the apparent order."""
+    for name, row in rows.items():
+        ext = "n/a" if row["phi_ext21"] is None else f"{row['phi_ext21']:.4g}"
+        print(f"  {name}: {row['phi_fine_to_coarse'][0]:.4g} Pa, extrapolated {ext} Pa, "
+              f"GCI {_percent(row['gci_fine21'])}, p = {row['p'] if row['p'] is None else round(row['p'], 2)} "
+              f"({row['status']})")
+
+
+def _percent(fraction: float | None) -> str:
+    """A fraction as a percentage with two decimals, "n/a" for None."""
+    return "n/a" if fraction is None else f"{100 * fraction:.2f}%"
 
 
 def cmd_verify(args) -> int:
@@ -98,7 +124,7 @@ def register(subparsers) -> None:
     """Add ``simulate`` and ``verify`` to an argparse subparsers object."""
     p = subparsers.add_parser("simulate", help="CBS blood-flow simulation on CASE_DIR/mesh.vtu")
     p.add_argument("case_dir", type=Path, metavar="CASE_DIR")
-    p.add_argument("--cycles", type=float, default=3.0, help="cardiac cycles (default 3)")
+    p.add_argument("--cycles", type=float, help="cardiac cycles (default 3; 1 per level with --convergence)")
     p.add_argument("--dt", type=float, help="fixed time step in s (default: adaptive)")
     p.add_argument("--periodic-tol", type=float, default=0.0, metavar="TOL",
                    help="run whole cycles until the TAWSS changes by less than TOL (area-weighted L2, relative) "
@@ -110,8 +136,19 @@ def register(subparsers) -> None:
     p.add_argument("--density", type=float, default=1060.0, metavar="KG_M3", help="fluid density (default 1060)")
     p.add_argument("--viscosity", type=float, default=3.5e-3, metavar="PA_S",
                    help="dynamic viscosity (default 3.5e-3)")
+    p.add_argument("--rheology", choices=("newtonian", "carreau", "casson"), default="newtonian",
+                   help="blood viscosity law: Newtonian (--viscosity), Carreau-Yasuda or Casson with published "
+                        "blood parameters")
     p.add_argument("--split", nargs="+", metavar="RATIO",
                    help="outflow fraction per outlet in label order, e.g. 0.65:0.35 (default: Murray's law)")
+    p.add_argument("--outlets", choices=("murray", "split", "resistance", "rcr"),
+                   help="outlet model: a prescribed split (Murray's law by default, or --split), or resistance / "
+                        "three-element Windkessel (RCR) outlets calibrated for that split as the mean share, the "
+                        "mean pressure and (RCR) the pulse pressure")
+    p.add_argument("--mean-pressure", type=float, default=93.0, metavar="MMHG",
+                   help="mean pressure the lumped outlets are calibrated for (default 93 mmHg)")
+    p.add_argument("--pulse-pressure", type=float, default=40.0, metavar="MMHG",
+                   help="pulse pressure the RCR outlets are calibrated for (default 40 mmHg)")
     p.add_argument("--turbulence", choices=("none", "sa"), default="none", help="Spalart-Allmaras or none")
     p.add_argument("--viscous", choices=("explicit", "implicit"), default="implicit",
                    help="viscous term: explicit (the paper's CBS) or implicit (larger steps on thin wall layers)")
@@ -122,10 +159,19 @@ def register(subparsers) -> None:
     p.add_argument("--checkpoint-every", type=int, default=500, metavar="M", help="steps between checkpoints")
     p.add_argument("--resume", action="store_true", help="continue from CASE_DIR/flow/checkpoint.npz")
     p.add_argument("--convergence", action="store_true",
-                   help="solution verification: run the case mesh and two coarser ones rebuilt from surface.vtp, "
-                        "and write the GCI of TAWSS/OSI/RRT per branch and per node to flow/convergence.json/.vtp")
+                   help="solution verification: run the case mesh and two coarser meshes rebuilt from surface.vtp "
+                        "(wall, core and layers coarsened), and the coarsest again at 1/2 and 1/4 of its time step; "
+                        "write the GCI of TAWSS/OSI/RRT per branch and per node to flow/convergence.json/.vtp")
     p.add_argument("--refinement", type=float, default=1.5, metavar="R",
-                   help="core-size ratio between consecutive --convergence levels (default 1.5)")
+                   help="edge-length ratio between consecutive --convergence levels (default 1.5)")
+    p.add_argument("--time-levels", action=argparse.BooleanOptionalAction, default=True,
+                   help="with --convergence: the two time-step levels on the coarsest mesh (default: on)")
+    p.add_argument("--case-mesh", action=argparse.BooleanOptionalAction, default=True,
+                   help="with --convergence: the finest level is the case mesh (default), so that the GCI is the "
+                        "case's; --no-case-mesh: the three levels are the case mesh coarsened by R, R^2 and R^3 "
+                        "(a quarter of the cost or less; the GCI is then that of a coarser mesh than the case's)")
+    p.add_argument("--workers", type=int, default=2, metavar="N",
+                   help="with --convergence: processes running the levels side by side, one core each (default 2)")
     p.add_argument("--force", action="store_true",
                    help="run even when the estimated steps (over 5 million) or output exceed the sane bounds")
     p.set_defaults(func=cmd_simulate)

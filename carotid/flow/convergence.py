@@ -146,6 +146,9 @@ def grid_convergence(h, phi, safety_factor: float = SAFETY_FACTOR) -> dict[str, 
 QUANTITIES = ("TAWSS", "OSI", "RRT")
 """Wall indices of a convergence study (``flow/indices.vtp`` point arrays)."""
 
+TIME_DIVISORS = (1, 2, 4)
+"""Time steps of the temporal levels of :func:`run_convergence`: the coarsest mesh's step divided by these."""
+
 
 def coarsened_mesh_parameters(parameters: dict, factor: float) -> dict:
     """Mesh-stage parameters of a mesh ``factor`` times coarser (``factor`` < 1: finer).
@@ -155,7 +158,8 @@ def coarsened_mesh_parameters(parameters: dict, factor: float) -> dict:
     quality report needs two sub-layers), and the growth ratio
     f becomes ``f^(N / N')``, so that f'^N' = f^N and the first-layer height T (f' - 1) / (f'^N' - 1)
     scales by (f' - 1) / (f - 1), about N / N' (the rule of :meth:`carotid.flow.verify.TubeSpec.refined`).
-    The wall triangles are those of ``surface.vtp`` on every level: the wall resolution is not scaled.
+    The wall triangles are those of the surface given to :func:`carotid.mesh.mesher.build_mesh`: scale them
+    with :func:`coarsened_surface`.
 
     Parameters
     ----------
@@ -178,6 +182,99 @@ def coarsened_mesh_parameters(parameters: dict, factor: float) -> dict:
             "lloyd_iterations": int(parameters.get("lloyd_iterations", 5))}
 
 
+def local_edge_length(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Edge length at each vertex of a triangle surface: the mean length of its edges, averaged once more with
+    its neighbours' (so that one long or short edge does not set it).
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+        Vertices, mm.
+    faces : ndarray, shape (m, 3)
+        Triangles.
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        mm (0 at unreferenced vertices).
+    """
+    from carotid.surface.mesh import adjacency, edges_of
+
+    edges, _, _ = edges_of(faces)
+    length = np.linalg.norm(points[edges[:, 0]] - points[edges[:, 1]], axis=1)
+    degree = np.bincount(edges.ravel(), minlength=len(points))
+    own = np.bincount(edges.ravel(), np.repeat(length, 2), minlength=len(points)) / np.maximum(degree, 1)
+    return (adjacency(len(points), faces) @ own + own) / (degree + 1)
+
+
+def coarsened_surface(surface, factor: float, iterations: int = 12):
+    """The lumen surface remeshed with edges ``factor`` times as long as its own (``factor`` < 1: shorter).
+
+    The target edge length at a point is ``factor`` times :func:`local_edge_length` at the nearest vertex of
+    ``surface``, so a surface graded by the local radius stays graded.  The remesher
+    (:func:`carotid.surface.remesh.remesh`, as many rounds as the surface stage gives an external surface)
+    projects the new vertices back onto ``surface``: the wall is the same piecewise-linear lumen, sampled
+    more coarsely, and the caps stay planar, labelled and on their rims.
+
+    Parameters
+    ----------
+    surface : pyvista.PolyData
+        Closed labelled surface (``surface.vtp``: ``CellEntityIds`` wall 1, caps 2, 3, ...), mm.
+    factor : float
+        Edge-length factor, > 0.
+    iterations : int
+        Remeshing rounds.
+
+    Returns
+    -------
+    pyvista.PolyData
+        The remeshed surface, same labels.
+    """
+    from scipy.spatial import cKDTree
+
+    from carotid.surface.mesh import from_polydata
+    from carotid.surface.remesh import remesh
+
+    points, faces, _ = from_polydata(surface)
+    target = factor * local_edge_length(points, faces)
+    tree = cKDTree(points)
+    return remesh(surface, lambda query: target[tree.query(query)[1]], iterations=iterations)
+
+
+def wall_interpolation(wall, query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Linear interpolation from the nodes of a triangle surface to other points: the vertices and barycentric
+    weights of each point's closest point on it.
+
+    Parameters
+    ----------
+    wall : pyvista.PolyData
+        Triangles (e.g. a level's ``flow/indices.vtp``), mm.
+    query : ndarray, shape (q, 3)
+        Points near it, mm.
+
+    Returns
+    -------
+    vertices : ndarray of int, shape (q, 3)
+        The three vertices of the closest triangle.
+    weights : ndarray, shape (q, 3)
+        Their barycentric weights at the closest point (sum 1): a nodal field f is ``(f[vertices] *
+        weights).sum(axis=1)`` at the query points.
+    """
+    from carotid.surface.project import TriangleProjector
+
+    points = np.asarray(wall.points, dtype=float)
+    triangles = wall.faces.reshape(-1, 4)[:, 1:]
+    closest, face = TriangleProjector(points, triangles)(np.asarray(query, dtype=float))
+    vertices = triangles[face]
+    a, b, c = (points[vertices[:, i]] for i in range(3))
+    v0, v1, v2 = b - a, c - a, closest - a
+    d00, d01, d11 = (np.einsum("ij,ij->i", x, y) for x, y in ((v0, v0), (v0, v1), (v1, v1)))
+    d20, d21 = np.einsum("ij,ij->i", v2, v0), np.einsum("ij,ij->i", v2, v1)
+    det = np.maximum(d00 * d11 - d01 ** 2, 1e-300)
+    wb, wc = (d11 * d20 - d01 * d21) / det, (d00 * d21 - d01 * d20) / det
+    return vertices, np.stack([1.0 - wb - wc, wb, wc], axis=1)
+
+
 def _branch_means(wall, regions: np.ndarray, n_branches: int) -> np.ndarray:
     """Area-weighted means (len(QUANTITIES), n_branches + 1) of the indices per branch and over the whole wall
     (last column); non-finite values (RRT of a purely reversing shear) are left out."""
@@ -194,121 +291,267 @@ def _branch_means(wall, regions: np.ndarray, n_branches: int) -> np.ndarray:
     return np.array(out)
 
 
-def _tables(result: dict, names: list[str]) -> dict:
-    """JSON rows of a vectorised :func:`grid_convergence` result, one per name (the last axis)."""
-    keys = ("p", "phi_ext21", "e_a21", "e_ext21", "gci_fine21", "u_num")
+def _tables(result: dict, names: list[str], **extra: np.ndarray) -> dict:
+    """JSON rows of a vectorised :func:`grid_convergence` result, one per name (the last axis); each ``extra``
+    array (one value per name) is one more column."""
+    columns = {k: result[k] for k in ("p", "phi_ext21", "e_a21", "e_ext21", "gci_fine21", "u_num")} | extra
 
     def number(x):
         return float(x) if np.isfinite(x) else None
 
     return {name: {"phi_fine_to_coarse": [number(v) for v in result["phi"][:, j]],
-                   "status": STATUS[int(result["status"][j])], **{k: number(result[k][j]) for k in keys}}
+                   "status": STATUS[int(result["status"][j])], **{k: number(v[j]) for k, v in columns.items()}}
             for j, name in enumerate(names)}
 
 
-def run_convergence(case_dir, params, refinement: float = 1.5, log=None, progress=None) -> dict:
-    """Three-mesh solution verification of a case: GCI of TAWSS, OSI and RRT per branch and per wall node.
+_PROGRESS = None
+"""The queue on which a worker process of :func:`run_convergence` reports ``(run name, fraction done)``."""
 
-    The coarsest level is the case's own mesh (the parameters recorded in ``mesh_quality.json``); the medium
-    and finest levels are rebuilt from ``surface.vtp`` with :func:`coarsened_mesh_parameters` refined by
-    ``refinement`` and ``refinement^2`` (refined, not coarsened: the core mesher takes its size from the wall
-    triangles where the requested core size is larger, so a coarser core request changes nothing).  The GCI is
-    the discretisation uncertainty of the finest level's results.  Each level
-    runs :func:`carotid.flow.simulate.simulate` with ``params`` (a fixed ``dt``, meant for the case mesh, is
-    scaled by the level's representative size h over the case mesh's) into ``flow/convergence/level<k>``
-    (0 finest).  Per branch region (wall nodes of
-    the nearest centerline branch, :func:`carotid.centerline.model.branch_regions`) and over the whole wall,
-    the area-weighted mean TAWSS (Pa), OSI and RRT (1/Pa) of each level go through :func:`grid_convergence`
-    (Celik et al. 2008); per node, the coarser levels' indices are taken at the nearest node of their wall
-    (the same nodes when, as here, every level keeps the wall triangles of ``surface.vtp``).
+
+def _worker_init(queue) -> None:
+    """Initialiser of the worker processes: keep the progress queue."""
+    global _PROGRESS
+    _PROGRESS = queue
+
+
+def _run_level(name: str, mesh, out, params) -> dict:
+    """One level's :func:`carotid.flow.simulate.simulate` in a worker process (resumed from a matching checkpoint),
+    reporting its fraction of the simulated time done at most every 2 s; returns the summary with
+    ``cpu_seconds``, the process time of the whole call (set-up included), s."""
+    import time
+
+    from carotid.flow.simulate import simulate
+
+    sent = [-np.inf]
+
+    def progress(info: dict) -> None:
+        if time.monotonic() - sent[0] >= 2.0:
+            sent[0] = time.monotonic()
+            _PROGRESS.put((name, info["time"] / info["end"]))
+
+    cpu = time.process_time()
+    summary = simulate(mesh, out, params, resume="auto", progress=progress)
+    return {**summary, "cpu_seconds": time.process_time() - cpu}
+
+
+def _wait(futures: dict, queue, weights: dict, log, progress) -> dict:
+    """Wait for the runs of :func:`run_convergence`; returns their summaries by name.
+
+    ``futures`` maps each future to its run name, ``weights`` each name to its estimated cost (any unit);
+    ``progress`` receives ``{"fraction": cost-weighted fraction of the study done, "runs": name -> fraction}``
+    about every second, ``log`` a line when a run ends.  The first failed run's error is raised.
+    """
+    import queue as queues
+    from concurrent.futures import FIRST_COMPLETED, wait
+
+    fractions = dict.fromkeys(weights, 0.0)
+    summaries, pending = {}, set(futures)
+    total = sum(weights.values())
+    while pending:
+        finished, pending = wait(pending, timeout=1.0, return_when=FIRST_COMPLETED)
+        try:
+            while True:
+                name, fraction = queue.get_nowait()
+                fractions[name] = fraction
+        except queues.Empty:
+            pass
+        for future in finished:
+            name = futures[future]
+            summaries[name] = future.result()
+            fractions[name] = 1.0
+            if log is not None:
+                log(f"{name} done: {summaries[name]['steps']:,} steps in {summaries[name]['seconds']:.0f} s")
+        if progress is not None:
+            progress({"fraction": sum(weights[n] * f for n, f in fractions.items()) / total, "runs": dict(fractions)})
+    return summaries
+
+
+def run_convergence(case_dir, params, refinement: float = 1.5, time_levels: bool = True, workers: int = 2,
+                    case_mesh: bool = True, log=None, progress=None) -> dict:
+    """Solution verification of a case: GCI of TAWSS, OSI and RRT per branch and per wall node, in space and time.
+
+    Space: level 0 is the case's own mesh (``mesh.vtu``), so that the GCI is the discretisation uncertainty of
+    the case's results; levels 1 and 2 are rebuilt from ``surface.vtp`` remeshed with edges ``refinement`` and
+    ``refinement^2`` times as long (:func:`coarsened_surface`: the wall, where WSS is computed, is coarsened
+    with the rest) and meshed with :func:`coarsened_mesh_parameters` of the case mesh's recorded parameters
+    coarsened by the same factors.  Without ``case_mesh`` the three levels are those coarsened by
+    ``refinement``, ``refinement^2`` and ``refinement^3``: the case mesh, finer than all of them, is not run
+    (a quarter of the cost or less), and the GCI is then that of level 0, a conservative bound of the case
+    mesh's error where the convergence is monotonic and asymptotic.  Each level runs
+    :func:`carotid.flow.simulate.simulate` with ``params`` (a fixed ``dt``, meant for the case mesh, is scaled
+    by the level's representative size h over the case mesh's; the adaptive step scales so by itself) into
+    ``flow/convergence/level<k>``.  Per branch region (wall nodes of the nearest centerline branch,
+    :func:`carotid.centerline.model.branch_regions`) and over the whole wall, the area-weighted mean TAWSS
+    (Pa), OSI and RRT (1/Pa) of each level go through :func:`grid_convergence` (Celik et al. 2008); per node,
+    the coarser levels' indices are interpolated linearly to the nodes of level 0's wall
+    (:func:`wall_interpolation`).
+
+    Time (``time_levels``): the coarsest mesh is run again with its time step divided by 2 and 4 (the
+    adaptive step's safety factor, or the fixed ``dt``, divided) into ``flow/convergence/level2_dt<d>``, and
+    the same per-branch means go through :func:`grid_convergence` with h the mean step of each run (s; the
+    adaptive step halves only about, as it follows the flow): the apparent temporal order, the extrapolation to a zero step and the GCI of the quarter step; each row adds
+    ``default_change``, the relative change |phi(dt) / phi(dt/2) - 1| of the study's own step, and
+    ``default_e_ext``, its relative distance |phi(dt) / phi_ext - 1| from the extrapolation (the estimated
+    temporal error of the coarsest mesh's step, the largest of the study: the steps scale with h).
+
+    The runs go to ``workers`` processes, finest first (with the case mesh, the longest: at ``refinement`` 1.5
+    the four others together take about half as long), while the coarser meshes are built.
 
     Parameters
     ----------
     case_dir : path
-        Case with ``surface.vtp``, ``mesh_quality.json`` and ``centerlines.vtp``.
+        Case with ``surface.vtp``, ``mesh.vtu``, ``mesh_quality.json`` and ``centerlines.vtp``.
     params : FlowParameters
         Settings of every level (``cycles``, ``periodic_tol``, waveform...).
     refinement : float
-        Ratio of the core sizes of consecutive levels, > 1.
+        Ratio of the edge lengths (wall and core) of consecutive levels, > 1.
+    time_levels : bool
+        Also run the two temporal levels.
+    workers : int
+        Processes running the levels side by side (each uses one core).
+    case_mesh : bool
+        Level 0 is the case mesh (else the case mesh coarsened by ``refinement``).
     log : callable, optional
-        Receives a line per level.
+        Receives a line per level built and per run ended.
     progress : callable, optional
-        Passed to :func:`simulate`.
+        Receives ``{"fraction", "runs"}`` about every second (see :func:`_wait`).
 
     Returns
     -------
     dict
-        Also written to ``flow/convergence.json``; the nodal map is ``flow/convergence.vtp`` (point arrays
-        ``<Q>``, ``<Q>_ext``, ``<Q>_GCI`` (fraction), ``<Q>_p`` and ``<Q>_status`` for Q in QUANTITIES, and
-        ``branch``).
+        Also written to ``flow/convergence.json``: ``levels`` (0 finest), the per-branch tables ``branches``
+        and the map summary ``map`` of the spatial study, and ``time`` (None without temporal levels) with
+        its ``levels`` and ``branches``.  The nodal map is ``flow/convergence.vtp`` on level 0's wall (point
+        arrays ``<Q>``, ``<Q>_ext``, ``<Q>_GCI`` (fraction), ``<Q>_p`` and ``<Q>_status`` for Q in QUANTITIES,
+        and ``branch``).
     """
     import json
+    import multiprocessing
+    import time
+    from concurrent.futures import ProcessPoolExecutor
     from dataclasses import replace
     from pathlib import Path
 
     import pyvista as pv
-    from scipy.spatial import cKDTree
 
     from carotid.centerline import read_centerlines
     from carotid.centerline.model import branch_regions
     from carotid.flow.output import write_wall_vtp
-    from carotid.flow.simulate import simulate
     from carotid.io import write_json
     from carotid.mesh.io import write_mesh
-    from carotid.mesh.mesher import build_mesh
+    from carotid.mesh.boundary import check_surface
+    from carotid.mesh.mesher import build_mesh, median_edge
 
     if not refinement > 1:
         raise CarotidError(f"--refinement must exceed 1 (got {refinement})")
+    if workers < 1:
+        raise CarotidError(f"--workers must be at least 1 (got {workers})")
+    start = time.perf_counter()
     case_dir = Path(case_dir)
-    for name in ("surface.vtp", "mesh_quality.json", "centerlines.vtp"):
+    for name in ("surface.vtp", "mesh.vtu", "mesh_quality.json", "centerlines.vtp"):
         if not (case_dir / name).is_file():
             raise CarotidError(f"the convergence study needs {case_dir / name}: run the earlier stages first")
     surface = pv.read(case_dir / "surface.vtp")
     case_quality = json.loads((case_dir / "mesh_quality.json").read_text())
     recorded = case_quality["parameters"]
-    h_case = float(representative_size(case_quality["volume"]["mesh_mm3"], case_quality["elements"]["tetrahedra"]))
     branches = read_centerlines(case_dir / "centerlines.vtp").branches
     names = [b.name for b in branches] + ["whole wall"]
     out = case_dir / "flow" / "convergence"
-    levels, walls = [], []
-    for k in range(3):
-        mesh_args = coarsened_mesh_parameters(recorded, refinement ** (k - 2))
-        mesh, quality = build_mesh(surface, **mesh_args)
-        level_dir = out / f"level{k}"
-        write_mesh(mesh, level_dir, quality)
-        h = float(representative_size(quality["volume"]["mesh_mm3"], quality["elements"]["tetrahedra"]))
-        dt = None if params.dt is None else params.dt * h / h_case
-        if log is not None:
-            log(f"level {k}: {quality['elements']['tetrahedra']:,} tetrahedra, h = {h:.3f} mm")
-        summary = simulate(level_dir / "mesh.vtu", level_dir, replace(params, dt=dt), resume="auto",
-                           progress=progress)
-        if not (level_dir / "flow" / "indices.vtp").is_file():
-            raise CarotidError(f"level {k} wrote no wall indices (under two outputs): run longer or output more often")
-        walls.append(pv.read(level_dir / "flow" / "indices.vtp"))
-        levels.append({"level": k, "h_mm": h, "tetrahedra": quality["elements"]["tetrahedra"],
-                       "nodes": quality["elements"]["points"], "mesh": mesh_args, "dt_s": summary["dt_s"],
-                       "steps": summary["steps"], "seconds": summary["seconds"], "cycles": summary["cycles"],
-                       "partial": summary["partial"], "periodic": summary["periodic"]})
-    h = np.array([lv["h_mm"] for lv in levels])
-    fine = walls[0]
-    regions = [branch_regions(np.asarray(w.points), branches) for w in walls]
-    means = np.array([_branch_means(w, r, len(branches)) for w, r in zip(walls, regions)])  # (3, Q, B + 1)
-    nearest = [cKDTree(np.asarray(w.points)).query(np.asarray(fine.points))[1] for w in walls]
-    nodal = {name: np.array([np.asarray(w[name], dtype=float)[i] for w, i in zip(walls, nearest)])
-             for name in QUANTITIES}
+    h_case = float(representative_size(case_quality["volume"]["mesh_mm3"], case_quality["elements"]["tetrahedra"]))
+    levels, weights, futures = [], {}, {}
+    context = multiprocessing.get_context("spawn")
+    queue = context.Queue()
+    with ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_init, initargs=(queue,)) as pool:
+        try:
+            for k in range(3):
+                factor = refinement ** (k + (not case_mesh))
+                if k == 0 and case_mesh:
+                    mesh_path, quality, wall = case_dir / "mesh.vtu", case_quality, surface
+                else:
+                    wall = coarsened_surface(surface, factor)
+                    mesh, quality = build_mesh(wall, **coarsened_mesh_parameters(recorded, factor))
+                    write_mesh(mesh, out / f"level{k}", quality)
+                    mesh_path = out / f"level{k}" / "mesh.vtu"
+                tets = quality["elements"]["tetrahedra"]
+                h = float(representative_size(quality["volume"]["mesh_mm3"], tets))
+                run = replace(params, dt=None if params.dt is None else params.dt * h / h_case)
+                edge = median_edge(check_surface(wall))
+                levels.append({"level": k, "h_mm": h, "tetrahedra": tets, "nodes": quality["elements"]["points"],
+                               "wall_edge_mm": edge, "edge_factor": factor,
+                               "mesh": coarsened_mesh_parameters(recorded, factor)})
+                if log is not None:
+                    log(f"level {k}{' (case mesh)' if factor == 1 else ''}: {tets:,} tetrahedra, h = {h:.3f} mm, "
+                        f"wall edge {edge:.3f} mm")
+                weights[f"level{k}"] = tets / h
+                futures[pool.submit(_run_level, f"level{k}", mesh_path, out / f"level{k}", run)] = f"level{k}"
+            for divisor in TIME_DIVISORS[1:] if time_levels else ():  # the coarsest level's mesh_path and run
+                name = f"level2_dt{divisor}"
+                finer = replace(run, safety=run.safety / divisor, dt=None if run.dt is None else run.dt / divisor)
+                weights[name] = weights["level2"] * divisor
+                futures[pool.submit(_run_level, name, mesh_path, out / name, finer)] = name
+            summaries = _wait(futures, queue, weights, log, progress)
+        except BaseException:
+            pool.shutdown(wait=False, cancel_futures=True)
+            if log is not None and futures:
+                log("stopped: waiting for the running levels to end (a rerun resumes them)")
+            raise
+    for level in levels:
+        summary = summaries[f"level{level['level']}"]
+        level.update({key: summary[key] for key in ("dt_s", "steps", "seconds", "cpu_seconds", "cycles", "partial",
+                                                    "periodic")})
+        level["wall_triangles"] = summary["mesh"]["wall_triangles"]
+    walls = {}
+    for name in summaries:
+        path = out / name / "flow" / "indices.vtp"
+        if not path.is_file():
+            raise CarotidError(f"{name} wrote no wall indices (under two outputs): run longer or output more often")
+        walls[name] = pv.read(path)
+    means = {name: _branch_means(w, branch_regions(np.asarray(w.points), branches), len(branches))
+             for name, w in walls.items()}  # each (Q, B + 1)
+    fine = walls["level0"]
+    spatial = [walls[f"level{k}"] for k in range(3)]
+    interpolation = [wall_interpolation(w, np.asarray(fine.points)) for w in spatial]
+    nodal = {q: np.array([(np.asarray(w[q], dtype=float)[v] * c).sum(axis=1) for w, (v, c) in
+                          zip(spatial, interpolation)]) for q in QUANTITIES}
+    h = np.array([level["h_mm"] for level in levels])
+    spatial_means = np.array([means[f"level{k}"] for k in range(3)])  # (3, Q, B + 1)
     result = {"method": "Celik et al. 2008 (J. Fluids Eng. 130:078001): Richardson extrapolation and the GCI of "
-                        "Roache with Fs = 1.25, h = (V/N)^(1/3); level 2 is the case mesh, levels 1 and 0 "
-                        "refined from it",
-              "refinement": refinement, "levels": levels, "branches": {}, "map": {}}
-    arrays = {"branch": regions[0]}
+                        "Roache with Fs = 1.25, h = (V/N)^(1/3); the levels are meshed from surface.vtp remeshed with "
+                        "edges edge_factor times longer than the case's, with the core size and the layer count "
+                        "scaled alike (edge_factor 1: the case mesh itself)",
+              "refinement": refinement, "case_level": 0 if case_mesh else None, "workers": workers,
+              "levels": levels, "branches": {}, "map": {}, "time": None}
+    arrays = {"branch": branch_regions(np.asarray(fine.points), branches)}
     for q, name in enumerate(QUANTITIES):
-        result["branches"][name] = _tables(grid_convergence(h, means[:, q]), names)
+        result["branches"][name] = _tables(grid_convergence(h, spatial_means[:, q]), names)
         node = grid_convergence(h, nodal[name])
         gci = node["gci_fine21"]
         result["map"][name] = {"median_gci": float(np.nanmedian(gci)) if np.isfinite(gci).any() else None,
                                **{s: float(np.mean(node["status"] == c)) for c, s in enumerate(STATUS)}}
         arrays.update({name: node["phi"][0], f"{name}_ext": node["phi_ext21"], f"{name}_GCI": gci,
                        f"{name}_p": node["p"], f"{name}_status": node["status"]})
+    if time_levels:
+        runs = ["level2"] + [f"level2_dt{d}" for d in TIME_DIVISORS[1:]]
+        step = np.array([summaries[r]["time_s"] / summaries[r]["steps"] for r in runs])  # mean steps, s
+        temporal = np.array([means[r] for r in runs])
+        result["time"] = {
+            "method": "the coarsest mesh (level 2) again with its time step divided by 2 and 4 (the safety factor "
+                      "of the adaptive step, or the fixed dt); grid_convergence with h the mean step of each run, "
+                      "simulated time / steps",
+            "mesh_level": 2,
+            "levels": [{"name": r, "divisor": d, "dt_mean_s": float(mean),
+                        "dt_s": summaries[r]["dt_s"], "steps": summaries[r]["steps"],
+                        "seconds": summaries[r]["seconds"], "cpu_seconds": summaries[r]["cpu_seconds"],
+                        "partial": summaries[r]["partial"]}
+                       for r, d, mean in zip(runs, TIME_DIVISORS, step)],
+            "branches": {}}
+        for q, name in enumerate(QUANTITIES):
+            study = grid_convergence(step, temporal[:, q])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                change = np.abs(temporal[0, q] / temporal[1, q] - 1.0)
+                error = np.abs(temporal[0, q] / study["phi_ext21"] - 1.0)
+            result["time"]["branches"][name] = _tables(study, names, default_change=change, default_e_ext=error)
+    result["seconds"] = time.perf_counter() - start
     write_wall_vtp(case_dir / "flow" / "convergence.vtp", np.asarray(fine.points),
                    fine.faces.reshape(-1, 4)[:, 1:], arrays)
     write_json(result, case_dir / "flow" / "convergence.json")

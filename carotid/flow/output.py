@@ -6,7 +6,8 @@ Layout of ``CASE_DIR/flow``::
     wall.xdmf            temporal collection over the wall triangles: WSS (Pa) at the nodes and on the faces
     mesh.h5, wall.h5     geometry (m) and connectivity, written once
     steps/step_<n>.h5    the fields of one output step (volume and wall)
-    indices.vtp          TAWSS, OSI, RRT, ECAP, transWSS, TWSSG on the wall (carotid.flow.indices), mm
+    indices.vtp          TAWSS, OSI, RRT, ECAP, transWSS, TWSSG on the wall (carotid.flow.indices), mm, and the
+                         Region cell array (codes named by the field array RegionNames; carotid.flow.regions)
     checkpoint.npz       solver state to resume from
     summary.json
 
@@ -159,13 +160,17 @@ class FlowWriter:
         return times, np.array(values)
 
 
-def write_wall_vtp(path: Path, points_mm: np.ndarray, triangles: np.ndarray, point_data: dict) -> None:
-    """Wall surface with point arrays as VTP (pyvista), atomically."""
+def write_wall_vtp(path: Path, points_mm: np.ndarray, triangles: np.ndarray, point_data: dict,
+                   cell_data: dict | None = None, field_data: dict | None = None) -> None:
+    """Wall surface with point arrays (n, ...), cell arrays (f, ...) and field arrays (any length, e.g. the
+    names of a cell array's codes) as VTP (pyvista), atomically."""
     import pyvista as pv
 
     surf = pv.PolyData(points_mm, np.hstack([np.full((len(triangles), 1), 3), triangles]).ravel())
-    for k, v in point_data.items():
-        surf.point_data[k] = v
+    for data, arrays in ((surf.point_data, point_data), (surf.cell_data, cell_data or {}),
+                         (surf.field_data, field_data or {})):
+        for k, v in arrays.items():
+            data[k] = v
     with atomic_path(path) as tmp:
         surf.save(tmp)
 

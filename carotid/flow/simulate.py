@@ -1,9 +1,10 @@
 """The flow stage driver: mesh + waveform -> CBS run -> ``CASE_DIR/flow`` (series, WSS, indices, summary).
 
-Blood is Newtonian (rho 1060 kg/m^3, mu 3.5e-3 Pa s; validation.md).  The inlet carries the generalised
-Womersley profile of the waveform (:func:`carotid.flow.womersley.inlet_profile`, solved on the actual inlet
-face); the outlets share the inflow by Murray's law or user ratios, imposed every step (see
-:mod:`carotid.flow.cbs`).  Outputs are written every ``output_every`` steps and checkpoints every
+Blood is Newtonian by default (rho 1060 kg/m^3, mu 3.5e-3 Pa s; validation.md), or shear-thinning
+(:mod:`carotid.flow.rheology`).  The inlet carries the generalised Womersley profile of the waveform
+(:func:`carotid.flow.womersley.inlet_profile`, solved on the actual inlet face); the outlets share the inflow
+by Murray's law or user ratios, imposed every step, or follow resistance / RCR laws (:mod:`carotid.flow.cbs`,
+:mod:`carotid.flow.outlets`).  Outputs are written every ``output_every`` steps and checkpoints every
 ``checkpoint_every`` steps, and at the step a Ctrl-C (SIGINT) interrupts; ``resume=True`` continues from the
 last checkpoint and, the run being deterministic (the time-step sequence follows from the stored state, the
 pressure warm start is stored), ends with the same fields as an uninterrupted run.
@@ -54,6 +55,21 @@ class FlowParameters:
         Harmonics of the inlet profile.
     split : sequence of float or None
         Flow fraction per outlet (ascending label: 3, 4, ...); None: Murray's law.
+    outlets : {"murray", "split", "resistance", "rcr"}
+        Outlet model: a prescribed split (Murray's law, or ``split``), or resistance / RCR outlets
+        (:mod:`carotid.flow.outlets`) calibrated for that split as the mean share, or given explicitly.
+    mean_pressure_mmhg, pulse_pressure_mmhg : float
+        Calibration targets of the resistance (mean) and RCR (mean and pulse) outlets, mmHg.
+    proximal_fraction : float
+        ``R_p / (R_p + R_d)`` of the calibrated RCR outlets.
+    distal_pressure_mmhg : float
+        Pressure downstream of the lumped outlets, mmHg.
+    resistance : sequence of float or None
+        Explicit outlet resistances, Pa s/m^3 (``outlets="resistance"``; None: calibrated).
+    rcr : sequence of (R_p, C, R_d) or None
+        Explicit RCR parameters per outlet, Pa s/m^3, m^3/Pa, Pa s/m^3 (``outlets="rcr"``; None: calibrated).
+    backflow : float
+        Coefficient of the outlet backflow stabilisation (Esmaily-Moghadam et al. 2011; 0: none).
     turbulence : {"none", "sa"}
     viscous : {"explicit", "implicit"}
         Molecular viscous term of the momentum step: explicit (the paper's CBS; step bounded by the thinnest
@@ -62,6 +78,8 @@ class FlowParameters:
         Steps between outputs and between checkpoints.
     rho, mu : float
         Density kg/m^3 and dynamic viscosity Pa s.
+    rheology : {"newtonian", "carreau", "casson"}
+        Viscosity law (:mod:`carotid.flow.rheology`, published blood parameters); "newtonian" uses ``mu``.
     max_speed : float
         |u| above which the run is declared blown up, m/s.
     pressure : str
@@ -80,12 +98,21 @@ class FlowParameters:
     waveform: object = None
     n_harmonics: int = 10
     split: tuple | None = None
+    outlets: str = "murray"
+    mean_pressure_mmhg: float = 93.0
+    pulse_pressure_mmhg: float = 40.0
+    proximal_fraction: float = 0.09
+    distal_pressure_mmhg: float = 0.0
+    resistance: tuple | None = None
+    rcr: tuple | None = None
+    backflow: float = 0.2
     turbulence: str = "none"
     viscous: str = "implicit"
     output_every: int = 50
     checkpoint_every: int = 500
     rho: float = 1060.0
     mu: float = 3.5e-3
+    rheology: str = "newtonian"
     max_speed: float = 20.0
     pressure: str = "auto"
     force: bool = False
@@ -97,6 +124,14 @@ class FlowParameters:
             raise CarotidError(f"--cycles must be positive (got {self.cycles})")
         if self.dt is not None and not self.dt > 0:
             raise CarotidError(f"--dt must be positive (got {self.dt})")
+        if self.outlets not in OUTLET_MODELS:
+            raise CarotidError(f"--outlets must be one of {', '.join(OUTLET_MODELS)} (got {self.outlets!r})")
+        if self.outlets == "split" and self.split is None:
+            raise CarotidError("--outlets split needs the fractions: --split 0.65:0.35")
+        if not self.backflow >= 0:
+            raise CarotidError(f"the backflow stabilisation coefficient must be >= 0 (got {self.backflow})")
+        if self.rheology not in ("newtonian", "carreau", "casson"):
+            raise CarotidError(f"--rheology must be newtonian, carreau or casson (got {self.rheology!r})")
         if self.turbulence not in ("none", "sa"):
             raise CarotidError(f"--turbulence must be 'sa' or 'none' (got {self.turbulence!r})")
         if self.viscous not in CBSSolver.VISCOUS:
@@ -125,6 +160,41 @@ class FlowParameters:
         return digest.hexdigest()[:16]
 
 
+OUTLET_MODELS = ("murray", "split", "resistance", "rcr")
+
+
+def outlet_model(params: FlowParameters, waveform, mesh: FlowMesh):
+    """The lumped outlets of ``params`` (None for a prescribed split): explicit values, or calibrated for the
+    target share (``split``, else Murray's law) with :func:`carotid.flow.outlets.tune_rcr`."""
+    from carotid.flow.cbs import murray_split
+    from carotid.flow.outlets import MMHG, OutletModel, tune_rcr
+
+    if params.outlets in ("murray", "split"):
+        return None
+    m, pd = len(mesh.outlet_labels), params.distal_pressure_mmhg * MMHG
+    explicit = params.resistance if params.outlets == "resistance" else params.rcr
+    if explicit is not None:
+        values = np.asarray(explicit, dtype=float)
+        if len(values) != m:
+            raise CarotidError(f"{len(values)} outlet {params.outlets} values for {m} outlets")
+        if params.outlets == "resistance":
+            return OutletModel.resistance(values, pd)
+        if values.shape != (m, 3):
+            raise CarotidError("each RCR outlet needs three values: R_p (Pa s/m^3), C (m^3/Pa), R_d (Pa s/m^3)")
+        model = OutletModel(values[:, 0], values[:, 1], values[:, 2], pd)
+        # start at the mean state of a flow shared as the distal conductances are (P_c equal on every outlet)
+        conductance = 1.0 / (values[:, 0] + values[:, 2])
+        model.pc = pd + values[:, 2] * conductance / conductance.sum() * waveform.mean_m3s
+        return model
+    share = np.asarray(params.split, dtype=float) if params.split is not None else murray_split(mesh)
+    if params.outlets == "resistance":
+        return OutletModel.resistance((params.mean_pressure_mmhg * MMHG - pd) / (share * waveform.mean_m3s), pd)
+    model = tune_rcr(waveform, share, params.mean_pressure_mmhg * MMHG, params.pulse_pressure_mmhg * MMHG,
+                     params.proximal_fraction, pd)
+    model.pc = pd + model.rd * share * waveform.mean_m3s  # start at the mean state, not from P_d: no slow charging
+    return model
+
+
 def stabilisation_velocity(waveform, inlet_area: float) -> float:
     """Velocity scale U of the pressure stabilisation time ``tau_e`` (:class:`CBSSolver`), m/s.
 
@@ -137,6 +207,7 @@ def stabilisation_velocity(waveform, inlet_area: float) -> float:
 
 
 def _build(mesh: FlowMesh, params: FlowParameters):
+    from carotid.flow.rheology import Rheology
     from carotid.flow.turbulence import SpalartAllmaras
     from carotid.flow.waveform import carotid_waveform
     from carotid.flow.womersley import inlet_profile
@@ -151,7 +222,9 @@ def _build(mesh: FlowMesh, params: FlowParameters):
     turbulence = SpalartAllmaras(mesh, nu) if params.turbulence == "sa" else None
     solver = CBSSolver(mesh, profile.velocity, nu, split=params.split, dt=params.dt, safety=params.safety,
                        velocity_scale=stabilisation_velocity(waveform, mesh.face_area(INLET)),
-                       turbulence=turbulence, pressure=params.pressure, viscous=params.viscous)
+                       turbulence=turbulence, pressure=params.pressure, viscous=params.viscous,
+                       outlets=outlet_model(params, waveform, mesh), rho=params.rho, backflow=params.backflow,
+                       rheology=Rheology(params.rheology, mu=params.mu))
     wall = WallShear(mesh, solver.volumes, distance=None if turbulence is None else turbulence.d)
     return waveform, solver, wall
 
@@ -209,7 +282,8 @@ def _diagnostics(solver: CBSSolver, info, rho: float) -> dict:
              for nj, wj in solver.out_flux]
     return {"dt": info.dt, "cfl": info.cfl, "inflow": info.inflow, "outflow": info.outflow.tolist(),
             "outflow_p1": info.outflow_p1.tolist(), "imbalance": info.imbalance, "imbalance_p1": info.imbalance_p1,
-            "dp": p_in - float(np.average(p_out, weights=solver.outlet_areas))}
+            "dp": p_in - float(np.average(p_out, weights=solver.outlet_areas)), "inlet_pressure": p_in,
+            "outlet_pressure": p_out}
 
 
 # The solver's BLAS calls are vector-sized (CG dot products and updates on the nodes): a second BLAS thread
@@ -359,7 +433,7 @@ def _checkpoint_fingerprint(path: Path) -> str | None:
 
 
 def _output(writer: FlowWriter, solver: CBSSolver, wall: WallShear, params: FlowParameters, diag: dict) -> None:
-    faces = wall.faces_wss(solver.velocity_gradients(), params.mu)
+    faces = wall.faces_wss(solver.velocity_gradients(), params.mu if solver.rheology is None else solver.rheology)
     fields = {"velocity": solver.u, "pressure": solver.pressure_pa(params.rho)}
     if solver.turbulence is not None:
         fields["nu_t"] = solver.turbulence.nu_t(solver.nut_hat)
@@ -438,18 +512,41 @@ class CyclePeriodicity:
                              "cycle's"}
 
 
+def _outlet_summary(solver: CBSSolver, params: FlowParameters, diag: list[dict], labels: list[int]) -> dict:
+    """The outlet model, its parameters and the inlet and outlet pressures over the recorded steps, mmHg."""
+    from carotid.flow.outlets import MMHG
+
+    def stats(values) -> dict:
+        v = np.asarray(values, dtype=float) / MMHG
+        return {"mean": float(v.mean()), "min": float(v.min()), "max": float(v.max())}
+
+    outlet_p = np.array([d.get("outlet_pressure", [np.nan] * len(labels)) for d in diag])
+    lumped = solver.lumped is not None
+    return {"model": params.outlets if lumped or params.split is None else "split",
+            "parameters": solver.lumped.as_dict() if lumped else None,
+            "calibration_share": [float(v) for v in solver.split] if lumped else None,
+            "pressure_reference": "absolute above the distal pressure" if lumped else
+            "relative: the area-weighted mean outlet pressure is 0 at every step",
+            "inlet_pressure_mmhg": stats([d.get("inlet_pressure", np.nan) for d in diag]),
+            "outlet_pressure_mmhg": {str(lab): stats(outlet_p[:, j]) for j, lab in enumerate(labels)}}
+
+
 def _finish(flow_dir, mesh, solver, wall, writer, params, waveform, seconds, periodicity) -> dict:
     from carotid.flow.indices import wall_indices
+    from carotid.flow.regions import REGION_NAMES, case_regions
 
     period = waveform.period_s
     since = max(solver.t - period, 0.0)
     fraction = (solver.t - since) / period
     times, wss = writer.read_wall("WSS", since)
-    indices = {}
+    indices, regions = {}, {}
     if len(times) >= 2:
         indices = wall_indices(times, wss, wall.node_normals)
-        write_wall_vtp(flow_dir / "indices.vtp", mesh.points[wall.nodes] / MM, wall.local_faces,
-                       {**indices, "WSS_last": wss[-1]})
+        points = mesh.points[wall.nodes] / MM
+        cells, regions = case_regions(Path(flow_dir).parent, points, wall.local_faces, indices)
+        named = {} if cells is None else {"cell_data": {"Region": cells},
+                                          "field_data": {"RegionNames": np.array(REGION_NAMES)}}
+        write_wall_vtp(flow_dir / "indices.vtp", points, wall.local_faces, {**indices, "WSS_last": wss[-1]}, **named)
     recs = [r for r in writer.records if r["time"] >= since - 1e-12 and r["step"] > 0]
     diag = [r["diagnostics"] for r in recs]
     inflow = np.array([d["inflow"] for d in diag])
@@ -479,10 +576,12 @@ def _finish(flow_dir, mesh, solver, wall, writer, params, waveform, seconds, per
                     "balance and the split: zero and the target by construction, not a check",
             "outlets": {str(lab): {"target_fraction": float(solver.split[j]),
                                    "fraction_of_inflow_mean": float(frac[:, j].mean()),
-                                   "error_max": float(np.max(np.abs(frac[:, j] - solver.split[j]))),
+                                   "error_max": None if solver.lumped is not None else
+                                   float(np.max(np.abs(frac[:, j] - solver.split[j]))),
                                    "consistent_fraction_of_inflow_mean": float(np.mean(consistent[:, j] / inflow))}
                         for j, lab in enumerate(labels)}},
         "pressure_drop_pa": {"last": diag[-1]["dp"], "cycle_mean": float(np.mean([d["dp"] for d in diag]))},
+        "outlets": _outlet_summary(solver, params, diag, labels),
         "wss_pa_last_step": {"mean": float(mag.mean()), "max": float(mag.max())},
         "indices": {k: {"min": float(v.min()), "mean": float(v.mean()), "max": float(v.max())}
                     for k, v in finite.items() if len(v)},
@@ -491,6 +590,7 @@ def _finish(flow_dir, mesh, solver, wall, writer, params, waveform, seconds, per
         "indices_note": ("the indices average the last cycle" if fraction >= 1 - 1e-9 else
                          f"PARTIAL: the indices average only {fraction:.3g} of a cycle (from t = 0), not a "
                          "cardiac cycle: they are not comparable with the indices of a whole cycle"),
+        **regions,
         "periodicity": periodicity.entries,
         "periodic": periodicity.summary(params.periodic_tol),
         "twssg": "temporal: (1/T) int |d tau/dt| dt",

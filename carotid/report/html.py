@@ -1,10 +1,11 @@
 """The self-contained HTML report of a case: ``CASE_DIR/report.html``.
 
 The first page is the clinical summary: the stenosis verdict, the diameter profile along the CCA and
-ICA, the wall shear stress maps, the named branches, the wall area exposed to low and oscillating shear
-per branch, the inflow waveform and outlet split, the cycle state (the TAWSS change of each cycle from
-the previous one), the grid convergence study of the wall indices (or a note that none was run), and a
-warning for every stale, partial or failed result.  The detail of each stage follows.  Each part is built
+ICA, the wall shear stress maps, the wall regions (CCA, bulb, ICA, ECA, stenosis) with the bifurcation
+geometry, the inflow waveform and outlet split, the cycle state (the TAWSS change of each cycle from
+the previous one), the grid convergence study of the wall indices (or a note that none was run), the wall
+area exposed to low and oscillating shear and the statistics of each index per region, and a warning for
+every stale, partial or failed result.  The detail of each stage follows.  Each part is built
 from the files a stage wrote, whatever wrote them (``carotid run`` or the per-stage commands); a stage that
 has not run yields a note instead of failing the report.  Pictures are PNG embedded as data URIs, so the
 file can be mailed or archived alone.
@@ -21,9 +22,11 @@ from pathlib import Path
 import numpy as np
 
 from carotid import __version__
-from carotid.centerline.model import branch_regions
+from carotid.centerline.features import (BULB_EXCESS, BULB_WINDOW, CCA_WINDOW, DAUGHTER_START, DIRECTION_WINDOW,
+                                        geometry_features)
 from carotid.flow.convergence import STATUS
 from carotid.flow.indices import HIGH_OSI, LOW_TAWSS_PA, node_areas
+from carotid.flow.regions import INDEX_UNITS, REGION_INDICES, REGION_NAMES, region_statistics, wall_regions
 from carotid.io import atomic_path, read_image, read_json
 from carotid.report import figures
 from carotid.report.checks import Check, quality_checks, stale_warnings, stenosis_category
@@ -33,7 +36,7 @@ from carotid.report.checks import Check, quality_checks, stale_warnings, stenosi
 CLIP_PERCENTILE = 98.0
 WALL_MAPS = (("TAWSS", "TAWSS (Pa)", "viridis"), ("OSI", "OSI (-)", "magma"), ("RRT", "RRT (1/Pa)", "magma"),
              ("ECAP", "ECAP (1/Pa)", "magma"))
-BRANCH_COLOURS = ("#4c72b0", "#dd8452", "#55a868", "#8172b3", "#937860", "#da8bc3")
+REGION_COLOURS = ("#4c72b0", "#dd8452", "#55a868", "#8172b3", "#c44e52", "#937860")  # by REGION_NAMES
 CATEGORY_CLASS = {"<50 %": "mild", "50-69 %": "moderate", ">=70 %": "severe", "near-occlusion": "severe"}
 
 STYLE = """
@@ -66,11 +69,13 @@ th { background: #f6f6f6; font-weight: normal; }
 
 @dataclass
 class Table:
-    """A table: caption, column header (None for name-value rows) and rows."""
+    """A table: caption, column header (None for name-value rows), rows, and optional column groups (label,
+    columns spanned) drawn above the header."""
 
     caption: str
     rows: list
     header: list | None = None
+    groups: list | None = None
 
 
 @dataclass
@@ -195,36 +200,79 @@ def find_image(case: Case) -> tuple[Path | None, str]:
                   else f"the input CT image {next(filter(None, candidates))} is not found")
 
 
-def exposure_rows(wall, regions: np.ndarray, names: list[str]) -> list[tuple]:
-    """Fraction of the wall area with low TAWSS, high OSI and both, per branch region and overall.
+def exposure_rows(wall, regions: np.ndarray, names) -> list[tuple]:
+    """The wall regions' table: area, area exposed to low TAWSS and high OSI, and each index's statistics.
 
     Parameters
     ----------
     wall : pyvista.PolyData
-        ``flow/indices.vtp`` (point arrays ``TAWSS`` in Pa and ``OSI``).
+        ``flow/indices.vtp`` (point arrays ``TAWSS`` in Pa, ``OSI``, and the other indices present).
     regions : ndarray of int, shape (n_points,)
-        Branch index of each point.
-    names : list of str
-        Branch names.
+        Region code of each point, an index into ``names`` (:func:`carotid.flow.regions.wall_regions`).
+    names : sequence of str
+        Region names.
 
     Returns
     -------
     list of tuple
-        (region, area mm², % TAWSS < 0.4 Pa, % OSI > 0.2, % both), formatted.
+        Per region with wall area, then the whole wall: (region, area mm², % TAWSS < 0.4 Pa, % OSI > 0.2,
+        % both, then mean, 5th and 95th percentile of each index of ``REGION_INDICES`` present), formatted;
+        :func:`carotid.flow.regions.region_statistics` (area-weighted over the nodes).
     """
     area = node_areas(wall.points, wall.triangulate().faces.reshape(-1, 4)[:, 1:])
-    low = np.asarray(wall["TAWSS"]) < LOW_TAWSS_PA
-    high = np.asarray(wall["OSI"]) > HIGH_OSI
-    groups = np.r_[regions, np.full(len(regions), len(names))]  # each point once per branch, once overall
-    weights = np.tile(area, 2)
-    total = np.bincount(groups, weights, minlength=len(names) + 1)
+    present = [name for name in REGION_INDICES if name in wall.array_names]
+    table = region_statistics({k: np.asarray(wall[k], dtype=float) for k in present}, area, regions, names)
+    rows = []
+    for name, entry in table.items():
+        stats = [f"{entry[k][stat]:.3g}" if k in entry else "–" for k in present for stat in ("mean", "p5", "p95")]
+        rows.append((name, f"{entry['area_mm2']:.0f}",
+                     *(f"{100 * entry[f'{key}_area_fraction']:.1f}"
+                       for key in ("low_tawss", "high_osi", "low_tawss_high_osi")), *stats))
+    return rows
 
-    def percent(flag):
-        return 100.0 * np.bincount(groups, weights * np.tile(flag, 2), minlength=len(names) + 1) / \
-            np.maximum(total, 1e-12)
 
-    columns = zip([*names, "whole wall"], total, percent(low), percent(high), percent(low & high))
-    return [(name, f"{a:.0f}", f"{lo:.1f}", f"{hi:.1f}", f"{both:.1f}") for name, a, lo, hi, both in columns if a > 0]
+def exposure_header(wall) -> tuple[list[str], list[tuple[str, int]]]:
+    """Column names of :func:`exposure_rows` for the indices ``wall`` holds, and their groups (label, span)."""
+    header = ["region", "area (mm²)", f"TAWSS < {LOW_TAWSS_PA} Pa", f"OSI > {HIGH_OSI}", "both"]
+    groups = [("", 2), ("% of the region's area", 3)]
+    for name in REGION_INDICES:
+        if name in wall.array_names:
+            header += ["mean", "p5", "p95"]
+            groups.append((f"{name} ({INDEX_UNITS[name]})" if INDEX_UNITS[name] else name, 3))
+    return header, groups
+
+
+def bifurcation_rows(geometry: dict | None) -> list[tuple]:
+    """The bifurcation geometry table (quantity, value, definition) from
+    :func:`carotid.centerline.features.bifurcation_geometry`; empty without it."""
+    if not geometry or "reason" in geometry:
+        return []
+
+    def diameters(window):  # a landmark window in CCA radii, as CCA diameters
+        return f"{window[0] / 2:g}-{window[1] / 2:g}"
+
+    rows = [("bifurcation angle (°)", f"{geometry['bifurcation_angle_deg']:.1f}",
+             f"ICA to ECA, principal axes over {diameters(DIRECTION_WINDOW)} CCA diameters from the bifurcation "
+             "point"),
+            ("ICA angle (°)", f"{geometry['ica_angle_deg']:.1f}", "ICA to the CCA's continuation"),
+            ("ECA angle (°)", f"{geometry['eca_angle_deg']:.1f}", "ECA to the CCA's continuation"),
+            ("ICA/CCA area ratio", f"{geometry['ica_cca_area_ratio']:.3f}",
+             f"median section areas: CCA {diameters(CCA_WINDOW)} diameters below the bifurcation point, ICA from "
+             f"{DAUGHTER_START / 2:g} CCA diameters above to its end"),
+            ("bifurcation area ratio (ICA+ECA)/CCA", f"{geometry['bifurcation_area_ratio']:.3f}",
+             "the same sections, ECA as the ICA"),
+            ("bulb diameter ratio", f"{geometry['bulb_diameter_ratio']:.3f}",
+             f"largest ICA diameter {diameters(BULB_WINDOW)} CCA diameters above the bifurcation point "
+             f"({geometry['bulb_max_diameter_mm']:.2f} mm) over the CCA's ({geometry['cca_diameter_mm']:.2f} mm)"),
+            ("bulb length (mm)", f"{geometry['bulb_end_mm']:.1f}",
+             f"along the ICA, to where its radius is back within {100 * BULB_EXCESS:g} % of the ICA's "
+             f"({geometry['ica_diameter_mm']:.2f} mm diameter)")]
+    for name, branch in geometry["branches"].items():
+        rows.append((f"{name} tortuosity", f"{branch['tortuosity']:.3f}", "arc length / chord - 1, whole branch"))
+    for name, branch in geometry["branches"].items():
+        rows.append((f"{name} planarity (°)", f"{branch['planarity_deg']:.1f}",
+                     "angle of its direction out of the plane of the other two branches' directions"))
+    return rows
 
 
 def _flow_series(case: Case) -> dict | None:
@@ -291,7 +339,8 @@ def _table_html(table: Table) -> str:
             flag = {"pass": ' class="pass"', "FAIL": ' class="fail"'}.get(str(cell), "")
             cells.append(f"<td{flag}>{html.escape(str(cell))}</td>")
         body.append(f"<tr>{''.join(cells)}</tr>")
-    return (f"<table><caption>{html.escape(table.caption)}</caption>"
+    groups = "".join(f'<th colspan="{span}">{html.escape(label)}</th>' for label, span in table.groups or [])
+    return (f"<table><caption>{html.escape(table.caption)}</caption>" + (f"<tr>{groups}</tr>" if groups else "")
             + (f"<tr>{head}</tr>" if head else "") + "".join(body) + "</table>")
 
 
@@ -371,33 +420,38 @@ def summary_html(case: Case) -> str:
     if case.flow:
         parts.append(convergence_html(case))
 
-    left, right = [], []
-    branches = read_centerlines(case.dir / "centerlines.vtp").branches \
-        if (case.dir / "centerlines.vtp").exists() else []
-    names = [b.name for b in branches]
+    left = []
+    cl = read_centerlines(case.dir / "centerlines.vtp") if (case.dir / "centerlines.vtp").exists() else None
+    geometry = geometry_features(cl) if cl is not None else {}
     surface_path = case.dir / "surface.vtp"
-    if surface_path.exists() and branches:
+    if surface_path.exists() and cl is not None:
         surface = pv.read(surface_path)
         ids = np.asarray(surface["CellEntityIds"])
         caps = case.cap_names()
         cap_ids = sorted(set(np.unique(ids).tolist()) - {1})
-        regions = branch_regions(np.asarray(surface.cell_centers().points), branches)
-        labels = np.where(ids == 1, regions, len(names) + np.searchsorted(cap_ids, ids))
-        legend = [(f"{n} wall", BRANCH_COLOURS[k % len(BRANCH_COLOURS)]) for k, n in enumerate(names)]
+        regions = wall_regions(np.asarray(surface.cell_centers().points), cl, geometry)
+        shown = np.unique(regions[ids == 1])
+        labels = np.where(ids == 1, np.searchsorted(shown, regions), len(shown) + np.searchsorted(cap_ids, ids))
+        legend = [(REGION_NAMES[code], REGION_COLOURS[code]) for code in shown]
         legend += [(f"{'inlet' if c == 2 else 'outlet'} {caps.get(c, c)}", "0.35" if c == 2 else "0.65")
                    for c in cap_ids]
         grade = case.geometry.get("stenosis")
         marker = (np.array(grade["location_mm"]), f"stenosis, NASCET {100 * grade['nascet']:.0f} %") \
             if grade else None
-        left.append(_figure("Lumen surface: branches named by their nearest centerline, caps, stenosis in red",
-                            figures.labelled_surface(surface, labels, legend, marker)))
-    if wall is not None and branches and {"TAWSS", "OSI"} <= set(wall.array_names):
-        rows = exposure_rows(wall, branch_regions(np.asarray(wall.points), branches), names)
-        right.append(_table_html(Table(f"Wall area with low TAWSS (< {LOW_TAWSS_PA} Pa) and high OSI "
-                                       f"(> {HIGH_OSI}), per branch", rows,
-                                       ["region", "area (mm²)", "low TAWSS (%)", "high OSI (%)", "both (%)"])))
-    right += flow_summary_html(case)
-    parts.append(f'<div class="more">{"".join(left) or "<div></div>"}<div>{"".join(right)}</div></div>')
+        left.append(_figure("Wall regions by the nearest centerline (bulb and stenosis from the radius profile), "
+                            "caps, graded stenosis in red", figures.labelled_surface(surface, labels, legend, marker)))
+    shape = geometry.get("bifurcation_geometry") or {}
+    rows = bifurcation_rows(shape)
+    left.append(_table_html(Table("Bifurcation geometry (Thomas et al. 2005, Lee et al. 2008)", rows,
+                                  ["quantity", "value", "definition"])) if rows else
+                '<p class="missing">No bifurcation geometry: the centerlines have no CCA, ICA and ECA, or are too '
+                f"short for its landmarks. {html.escape(shape.get('reason', ''))}</p>")
+    parts.append(f'<div class="more"><div>{"".join(left)}</div><div>{"".join(flow_summary_html(case))}</div></div>')
+    if wall is not None and cl is not None and {"TAWSS", "OSI"} <= set(wall.array_names):
+        rows = exposure_rows(wall, wall_regions(np.asarray(wall.points), cl, geometry), REGION_NAMES)
+        parts.append(_table_html(Table(
+            f"Wall regions: area with low TAWSS (< {LOW_TAWSS_PA} Pa), high OSI (> {HIGH_OSI}) and both, and the "
+            "area-weighted mean and 5th and 95th percentiles of each index", rows, *exposure_header(wall))))
     return "\n".join(parts)
 
 
@@ -407,11 +461,14 @@ def flow_summary_html(case: Case) -> list[str]:
         return []
     caps = case.cap_names()
     outlets = case.flow.get("mass_balance", {}).get("outlets", {})
+    lumped = (case.flow.get("outlets") or {}).get("parameters") is not None
     rows = [(caps.get(int(label), label), f"{100 * o['target_fraction']:.1f}",
-             f"{100 * o['fraction_of_inflow_mean']:.1f}", f"{100 * o['error_max']:.2g}")
+             f"{100 * o['fraction_of_inflow_mean']:.1f}",
+             "-" if o.get("error_max") is None else f"{100 * o['error_max']:.2g}")
             for label, o in outlets.items()]
-    parts = [_table_html(Table("Outlet flow split (last cycle)", rows,
-                               ["outlet", "target (%)", "achieved, mean (%)", "largest error (points of %)"]))]
+    header = (["outlet", "calibration share (%)", "achieved, mean (%)", "(not imposed)"] if lumped else
+              ["outlet", "target (%)", "achieved, mean (%)", "largest error (points of %)"])
+    parts = [_table_html(Table("Outlet flow split (last cycle)", rows, header))]
     series = _flow_series(case)
     if series is not None:
         named = {"inflow (CCA)": (series["time"], series["inflow"])}
@@ -602,7 +659,7 @@ def geometry_section(case: Case) -> Section:
     section.tables.append(Table("Caps (CellEntityIds: wall 1, inlet 2, outlets 3, 4, ...)",
                                 [(c["id"], c.get("name", ""), f"{c['area']:.2f}", f"{c['equivalent_radius']:.2f}")
                                  for c in caps], ["id", "branch", "area (mm²)", "equivalent radius (mm)"]))
-    skip = ("stenosis", "stenoses", "branches", "caps", "branch_names", "centerlines_file")
+    skip = ("stenosis", "stenoses", "branches", "caps", "branch_names", "centerlines_file", "bifurcation_geometry")
     section.tables.append(Table("Centerline record", flatten({k: v for k, v in geometry.items() if k not in skip})))
     if (case.dir / "surface.vtp").exists():
         section.figures.append(("Smallest angle of each surface triangle",
@@ -654,7 +711,8 @@ def flow_section(case: Case) -> Section:
         section.tables.append(Table("Per-node GCI over the wall (finest mesh)", [
             (name, _percent(m["median_gci"]), *(_percent(m[status]) for status in STATUS))
             for name, m in study["map"].items()], ["index", "median GCI (%)", *(f"{s} (% of nodes)" for s in STATUS)]))
-    record = {k: v for k, v in summary.items() if k not in ("indices", "periodicity")}
+    shown = ("indices", "periodicity", "regions", "bifurcation_geometry")  # tabled on their own
+    record = {k: v for k, v in summary.items() if k not in shown}
     record["mass_balance"] = {k: v for k, v in summary.get("mass_balance", {}).items() if k != "outlets"}
     section.tables.append(Table("Solver record", flatten(record)))
     return section
