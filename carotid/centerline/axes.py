@@ -162,6 +162,100 @@ def section_areas(levelset: Volume, points: np.ndarray, radii: np.ndarray, step:
     return np.count_nonzero(own, axis=(1, 2)) * step ** 2
 
 
+SECTION_RAYS = 36
+"""Rays per section of :func:`section_radii` (every 10 degrees)."""
+NARROW_ARC_DEG = 90.0
+"""Arc over which :func:`section_profile` takes the running median before the narrowest half-width."""
+
+
+def section_radii(levelset: Volume, points: np.ndarray, radii: np.ndarray, n_rays: int = SECTION_RAYS,
+                  reach: float = 1.5, margin: float = 1.0) -> np.ndarray:
+    """Distance (mm) from each axis point to the lumen wall along rays in the plane normal to the axis.
+
+    Each ray is sampled every quarter of the smallest voxel size and the wall is the first zero crossing of
+    the level set along it, placed by linear interpolation between the two samples that bracket it.  A ray
+    that stays inside out to ``reach * radius + margin`` (into a branch that leaves through the section)
+    reads that length.
+
+    Parameters
+    ----------
+    levelset : Volume
+        Negative inside the lumen.
+    points : ndarray, shape (n, 3)
+        Axis points, mm, in order along the axis.
+    radii : ndarray, shape (n,)
+        Inscribed radius at each point, mm (sets the ray length).
+    n_rays : int
+        Rays per section, evenly spaced in angle from the first normal direction.
+    reach, margin : float
+        Ray length as a multiple of the point's radius, plus ``margin`` mm.
+
+    Returns
+    -------
+    ndarray, shape (n, n_rays)
+        Wall distance along each ray, mm.
+    """
+    points = np.asarray(points, float).reshape(-1, 3)
+    radii = np.asarray(radii, float)
+    if len(points) < 2:
+        return np.repeat(radii[:, None], n_rays, axis=1)
+    t = tangents(points)
+    helper = np.where(np.abs(t[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    u = np.cross(t, helper)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    v = np.cross(t, u)
+    angle = np.linspace(0.0, 2.0 * np.pi, n_rays, endpoint=False)
+    ray = np.cos(angle)[None, :, None] * u[:, None] + np.sin(angle)[None, :, None] * v[:, None]  # (n, m, 3)
+    step = 0.25 * float(min(levelset.spacing))
+    length = reach * radii + margin
+    along = np.arange(0.0, float(length.max()) + step, step)
+    out = np.empty((len(points), n_rays))
+    for lo in range(0, len(points), 32):  # blocks of points bound the memory of the samples
+        sl = slice(lo, lo + 32)
+        xyz = points[sl, None, None] + along[None, None, :, None] * ray[sl, :, None]
+        phi = sample(levelset, xyz.reshape(-1, 3)).reshape(xyz.shape[:3])
+        outside = (phi >= 0) | (along[None, None, :] > length[sl, None, None])
+        k = np.where(outside.any(axis=2), np.argmax(outside, axis=2), len(along) - 1).clip(1)
+        a = np.take_along_axis(phi, (k - 1)[..., None], axis=2)[..., 0]
+        b = np.take_along_axis(phi, k[..., None], axis=2)[..., 0]
+        crossing = (b >= 0) & (a < 0)
+        fraction = np.where(crossing, -a / np.where(crossing, b - a, 1.0), 1.0)
+        out[sl] = np.minimum(along[k - 1] + fraction * step, length[sl, None])
+    return out
+
+
+def section_profile(rays: np.ndarray, arc_deg: float = NARROW_ARC_DEG) -> tuple[np.ndarray, np.ndarray]:
+    """The median radius and the narrowest half-width of each section, robust to the roughness of the wall.
+
+    A segmented wall is never smooth: noise and the grid leave bumps and dents of 0.1-0.3 mm over an arc of
+    a millimetre or two, and the maximal inscribed sphere, which touches the deepest dent, reads that much
+    too low (0.2 mm in radius on a 2.5 mm distal ICA of the phantom family).  Over the ray distances
+    ``r(theta)`` of :func:`section_radii`:
+
+    * the median radius, the median of ``r(theta)``, is the radius of a round vessel, whatever its bumps and
+      dents and whatever branch leaves through the section;
+    * the narrowest half-width is the smallest value of the running median of ``r(theta)`` over ``arc_deg``
+      (circular): a dent narrower than half that arc is ignored, an elliptic or eccentric lumen still reads
+      its narrow side.
+
+    Parameters
+    ----------
+    rays : ndarray, shape (n, m)
+        Wall distances along ``m`` rays evenly spaced in angle, mm.
+    arc_deg : float
+        Arc of the running median, degrees.
+
+    Returns
+    -------
+    median, narrow : ndarray, shape (n,)
+        mm.
+    """
+    rays = np.asarray(rays, float)
+    width = max(int(round(arc_deg / 360.0 * rays.shape[1])) | 1, 1)
+    running = ndimage.median_filter(rays, size=(1, width), mode="wrap")
+    return np.median(rays, axis=1), running.min(axis=1)
+
+
 def tangents(points: np.ndarray) -> np.ndarray:
     """Unit tangents (n, 3) of a polyline by central differences (one-sided at the ends)."""
     t = np.gradient(points, axis=0)

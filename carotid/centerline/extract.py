@@ -7,18 +7,19 @@ smoothing along the arc length, recentring on the maximal inscribed sphere,
 trimming of capped ends and straightening of ends cut by the image border ->
 the bifurcation where the daughter axes leave the trunk -> radius of the
 maximal inscribed sphere at each point (distance to the zero level set of the
-level set, see ``axes``) and area of the section normal to the axis ->
-features (``features``).  All geometry is in mm in the image's physical
-frame (spacing, origin and direction honoured), so anisotropic voxels need no
-special care beyond the thinning itself, which is topological.
+level set, see ``axes``), area, median radius and narrowest half-width of the
+section normal to the axis -> features (``features``).  All geometry is in mm
+in the image's physical frame (spacing, origin and direction honoured), so
+anisotropic voxels need no special care beyond the thinning itself, which is
+topological.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from carotid.centerline.axes import (WallDistance, recentre, section_areas, smooth_axis, straighten_border_end,
-                                    trim_open_end)
+from carotid.centerline.axes import (WallDistance, recentre, section_areas, section_profile, section_radii,
+                                    smooth_axis, straighten_border_end, trim_open_end)
 from carotid.centerline.features import geometry_features
 from carotid.centerline.graph import simplify, skeleton_graph
 from carotid.centerline.labels import bifurcation_point, label_tree, splice_at
@@ -117,7 +118,8 @@ def compute_centerlines(levelset: Volume, mask: Volume | None = None, *, prune: 
     branches = []
     for name, pts in axes.items():
         radii = radius_at(pts)
-        branches.append(Branch(name, pts, radii, section_areas(levelset, pts, radii)))
+        median, narrow = section_profile(section_radii(levelset, pts, radii))
+        branches.append(Branch(name, pts, radii, section_areas(levelset, pts, radii), median, narrow))
     labelled.info["bifurcation_method"] = bif_method
     info = {"lumen": report, "labelling": labelled.info,
             "parameters": {"prune": prune, "smoothing_mm": smoothing, "step_mm": step, "merge": merge}}

@@ -3,23 +3,27 @@
 Every branch's points run with the flow (CCA: inlet to bifurcation; the
 others: bifurcation outward), so "distal" is "further along the points".
 
-Stenosis grading, on the inscribed-sphere radius profile r(s) of a branch
-(diameters are 2 r; the inscribed sphere measures the narrowest width of a
-non-circular section, the quantity angiographic grading approximates):
+Stenosis grading, on two radius profiles of a branch: the narrowest
+half-width r(s) of each section for the residual lumen, and the median
+radius m(s) of each section for the vessel's own size (both robust to the
+wall's roughness, ``axes.section_profile``; the inscribed-sphere radius
+stands for both on centerlines that carry neither).  Diameters are twice
+the radii; the narrowest width is the quantity angiographic grading
+approximates, and a round vessel's diameter is its median one:
 
 * the original (healthy) radius at each point is estimated by linear
-  interpolation between the widest sections within four median radii
+  interpolation between the widest sections of m(s) within four median radii
   upstream and downstream of it (the sinus bulb, the recovered distal ICA);
 * the lesion is where r(s) falls furthest below that estimate, away from the
   branch ends (one end radius is skipped at each end, where the radius
   reflects the junction or the cut);
-* NASCET = 1 - d_min / d_distal, with d_distal the normal distal diameter:
-  the median diameter of the branch beyond the point where the radius has
-  recovered to 95% of its distal plateau (the median over the distal half of
-  what follows the lesion), one radius further on so that the bulb and the
-  post-stenotic flank are excluded.  A narrowest section with less than two
-  radii of branch beyond it is a taper towards the outlet, not a lesion, and
-  is graded 0;
+* NASCET = 1 - d_min / d_distal, with d_min = 2 r at the lesion and d_distal
+  the normal distal diameter: the median of 2 m(s) over the branch beyond the
+  point where m(s) has recovered to 95% of its distal plateau (the median
+  over the distal half of what follows the lesion), one radius further on so
+  that the bulb and the post-stenotic flank are excluded.  A narrowest
+  section with less than two radii of branch beyond it is a taper towards the
+  outlet, not a lesion, and is graded 0;
 * ECST = 1 - d_min / d_local, with d_local the estimated original diameter
   at the lesion.  A lesion in a wide bulb can have a positive ECST and a zero
   NASCET (its narrowest diameter still exceeds the distal one), as clinically;
@@ -102,7 +106,19 @@ def local_healthy_radius(s: np.ndarray, r: np.ndarray, reach: float) -> np.ndarr
     return r[i] + t * (r[j] - r[i])
 
 
-def healthy_profile(branch: Branch) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+def grading_profiles(branch: Branch) -> tuple[np.ndarray, np.ndarray]:
+    """The two radius profiles of the stenosis grading: narrowest half-width and median radius (n,), mm.
+
+    ``branch.narrow_radii`` and ``branch.median_radii`` where the centerlines carry them, else the inscribed
+    radius for both.
+    """
+    narrow = branch.narrow_radii if branch.narrow_radii is not None else branch.radii
+    median = branch.median_radii if branch.median_radii is not None else branch.radii
+    return np.asarray(narrow, float), np.asarray(median, float)
+
+
+def healthy_profile(branch: Branch,
+                    radii: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Arc length, the points away from the branch ends, and the estimated original radius there.
 
     One end radius is skipped at each end (the radius there reflects the junction or the cut); the original
@@ -112,6 +128,8 @@ def healthy_profile(branch: Branch) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     ----------
     branch : Branch
         Points ordered with the flow.
+    radii : ndarray, shape (n,), optional
+        Radius profile to estimate from, mm; default ``branch.radii``.
 
     Returns
     -------
@@ -120,7 +138,7 @@ def healthy_profile(branch: Branch) -> tuple[np.ndarray, np.ndarray, np.ndarray]
         from the ends; ``healthy`` (m,) the original radius at those points, mm.  None when fewer than five
         points are away from the ends.
     """
-    r = branch.radii
+    r = branch.radii if radii is None else np.asarray(radii, float)
     s = arclength(branch.points)
     valid = np.flatnonzero((s >= r[0]) & (s <= s[-1] - r[-1]))
     if len(valid) < 5:
@@ -134,7 +152,7 @@ def stenosis(branch: Branch, from_end: bool = False) -> dict | None:
     Parameters
     ----------
     branch : Branch
-        Points ordered with the flow.
+        Points ordered with the flow; graded on :func:`grading_profiles`.
     from_end : bool
         Whether the bifurcation is the branch's last point (the CCA) rather than its first.
 
@@ -148,15 +166,16 @@ def stenosis(branch: Branch, from_end: bool = False) -> dict | None:
         (the lesion's full width at half depth, [near, far] arc lengths from the bifurcation, mm); None if
         the branch is too short.
     """
-    profile = healthy_profile(branch)
+    narrow, median = grading_profiles(branch)
+    profile = healthy_profile(branch, median)
     if profile is None:
         return None
     s, valid, healthy = profile
-    p, r = branch.points, branch.radii
-    depth = 1.0 - r[valid] / np.maximum(healthy, 1e-9)
+    p = branch.points
+    depth = 1.0 - narrow[valid] / np.maximum(healthy, 1e-9)
     pick = int(np.argmax(depth))
     k, r_local = int(valid[pick]), float(healthy[pick])
-    r_min = float(r[k])
+    r_min = float(narrow[k])
     outside = np.flatnonzero((depth < 0.5 * depth[pick]) | ((depth[pick] <= 0) & (np.arange(len(valid)) != pick)))
     first = int(outside[outside < pick].max() + 1) if np.any(outside < pick) else 0
     last = int(outside[outside > pick].min() - 1) if np.any(outside > pick) else len(valid) - 1
@@ -164,11 +183,11 @@ def stenosis(branch: Branch, from_end: bool = False) -> dict | None:
     after = valid[valid > k]
     reference = "distal"
     if len(after) >= 5 and s[after[-1]] - s[k] >= 2.0 * r_min:
-        plateau = float(np.median(r[after[len(after) // 2:]]))
-        recovered = after[r[after] >= 0.95 * plateau]
+        plateau = float(np.median(median[after[len(after) // 2:]]))
+        recovered = after[median[after] >= 0.95 * plateau]
         start = s[recovered[0]] + plateau if len(recovered) else s[after[0]]
         window = after[s[after] >= start]
-        r_distal = float(np.median(r[window if len(window) >= 3 else after[len(after) // 2:]]))
+        r_distal = float(np.median(median[window if len(window) >= 3 else after[len(after) // 2:]]))
     else:  # the narrowest section ends the measured branch: a taper, no distal normal segment to grade against
         reference = "none"
         r_distal = r_min

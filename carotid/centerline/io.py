@@ -2,7 +2,9 @@
 
 The VTP holds one polyline cell per branch, in mm, with the point array
 ``MaximumInscribedSphereRadius`` (mm), ``CenterlineSectionArea`` (mm^2, as
-VMTK's ``vmtkcentersections``) and the cell arrays ``BranchId`` (int)
+VMTK's ``vmtkcentersections``), ``CenterlineSectionMedianRadius`` and
+``CenterlineSectionNarrowRadius`` (mm, the section's median radius and
+narrowest half-width, ``axes.section_profile``) and the cell arrays ``BranchId`` (int)
 and ``BranchName`` (string), so ParaView and VMTK scripts read it as they
 read VMTK's own centerlines.
 """
@@ -23,6 +25,8 @@ VTP_NAME = "centerlines.vtp"
 JSON_NAME = "geometry.json"
 RADIUS = "MaximumInscribedSphereRadius"
 AREA = "CenterlineSectionArea"
+MEDIAN = "CenterlineSectionMedianRadius"
+NARROW = "CenterlineSectionNarrowRadius"
 
 
 def to_polydata(cl: Centerlines) -> pv.PolyData:
@@ -33,8 +37,9 @@ def to_polydata(cl: Centerlines) -> pv.PolyData:
     lines = np.concatenate([np.concatenate([[n], s + np.arange(n)]) for n, s in zip(sizes, starts)])
     poly = pv.PolyData(points, lines=lines)
     poly.point_data[RADIUS] = np.concatenate([b.radii for b in cl.branches]).astype(float)
-    if all(b.areas is not None for b in cl.branches):
-        poly.point_data[AREA] = np.concatenate([b.areas for b in cl.branches]).astype(float)
+    for name, attribute in ((AREA, "areas"), (MEDIAN, "median_radii"), (NARROW, "narrow_radii")):
+        if all(getattr(b, attribute) is not None for b in cl.branches):
+            poly.point_data[name] = np.concatenate([getattr(b, attribute) for b in cl.branches]).astype(float)
     poly.cell_data["BranchId"] = np.arange(len(cl.branches), dtype=np.int32)
     poly.cell_data["BranchName"] = np.array([b.name for b in cl.branches])
     return poly
@@ -87,12 +92,13 @@ def read_centerlines(path: str | Path) -> Centerlines:
         raise CarotidError(f"{vtp}: not a carotid centerline file (arrays {RADIUS} and BranchName missing)")
     names = [str(n) for n in poly.cell_data["BranchName"]]
     radii = np.asarray(poly.point_data[RADIUS], float)
-    areas = np.asarray(poly.point_data[AREA], float) if AREA in poly.point_data else None
+    optional = [np.asarray(poly.point_data[a], float) if a in poly.point_data else None
+                for a in (AREA, MEDIAN, NARROW)]
     branches = []
     for k, name in enumerate(names):
         ids = np.asarray(poly.get_cell(k).point_ids)
         branches.append(Branch(name, np.asarray(poly.points[ids], float), radii[ids],
-                               None if areas is None else areas[ids]))
+                               *(None if a is None else a[ids] for a in optional)))
     info: dict = {}
     geometry = vtp.parent / JSON_NAME
     if geometry.exists():

@@ -25,12 +25,17 @@ class Branch:
         Radius of the maximal inscribed sphere at each point, mm.
     areas : ndarray, shape (n,), optional
         Area of the lumen section normal to the axis at each point, mm^2 (``axes.section_areas``).
+    median_radii, narrow_radii : ndarray, shape (n,), optional
+        Median radius and narrowest half-width of the section normal to the axis at each point, mm
+        (``axes.section_profile``): the stenosis grading's robust measures of a rough wall.
     """
 
     name: str
     points: np.ndarray
     radii: np.ndarray
     areas: np.ndarray | None = None
+    median_radii: np.ndarray | None = None
+    narrow_radii: np.ndarray | None = None
 
     @property
     def length_mm(self) -> float:

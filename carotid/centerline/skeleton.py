@@ -14,7 +14,13 @@ The thinning itself is scikit-image's ``skeletonize`` (Lee, Kashyap and Chu's
   border slices before thinning, and the skeleton is clipped back to the
   image afterwards.  Thinning would otherwise retract the axis from a flat cut
   end by about one radius (and fork it towards the rim); with the extension
-  the axis reaches the border, where the open ends of the vessel tree are.
+  the axis reaches the border, where the open ends of the vessel tree are;
+* a straight vessel whose section is mirror-symmetric about a line between
+  voxel centres (an axis exactly midway between them) can be thinned away
+  whole, both middle layers being deleted together; when nothing is left the
+  mask is thinned again after a one-voxel erosion from the +i and +j sides,
+  which breaks that symmetry (the half-voxel shift is undone by the
+  re-centring of the axis).
 """
 
 from __future__ import annotations
@@ -113,7 +119,10 @@ def skeletonize_lumen(lumen: np.ndarray, spacing_kji, extend_mm: float) -> np.nd
     """
     pad = np.ceil(extend_mm / np.asarray(spacing_kji, float)).astype(int) + 1
     crop, corner = _padded_crop(lumen, pad)
-    skel = skeletonize(ndimage.gaussian_filter(crop.astype(np.float32), REGULARISE_VOXELS) > 0.5)
+    regular = ndimage.gaussian_filter(crop.astype(np.float32), REGULARISE_VOXELS) > 0.5
+    skel = skeletonize(regular)
+    if not skel.any():
+        skel = skeletonize(regular & np.roll(regular, -1, axis=2) & np.roll(regular, -1, axis=1))
     out = np.zeros(lumen.shape, bool)
     kji = np.argwhere(skel) + corner
     inside = np.all((kji >= 0) & (kji < lumen.shape), axis=1)
