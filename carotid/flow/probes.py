@@ -324,13 +324,13 @@ class ProbeRecorder:
         return [flow_dir / "probes.csv", flow_dir / "probes.xdmf"]
 
 
-def read_probe_csv(path) -> list[tuple[str, tuple[float, float, float]]]:
+def read_probe_csv(path, start: int = 1) -> list[tuple[str, tuple[float, float, float]]]:
     """Probe points from a CSV file of rows ``x, y, z[, name]`` (mm, LPS); an optional header; ``#`` comments.
 
     Returns
     -------
     list of (name, (x, y, z))
-        Unnamed rows are called ``probe<k>`` by their row number among the points (1-based).
+        Unnamed rows are called ``probe<k>``, k counting the points from ``start``.
 
     Raises
     ------
@@ -355,7 +355,7 @@ def read_probe_csv(path) -> list[tuple[str, tuple[float, float, float]]]:
             xyz = ()
         if len(xyz) != 3 or len(fields) > 4 or not all(math.isfinite(v) for v in xyz):
             raise CarotidError(f"{path}: line {lineno}: expected 'x, y, z[, name]' in mm, got {','.join(row)!r}")
-        probes.append((fields[3] if len(fields) == 4 and fields[3] else f"probe{len(probes) + 1}", xyz))
+        probes.append((fields[3] if len(fields) == 4 and fields[3] else f"probe{len(probes) + start}", xyz))
     if not probes:
         raise CarotidError(f"{path}: no probe rows 'x, y, z[, name]'")
     return probes
