@@ -190,7 +190,8 @@ def test_resume_equals_uninterrupted(tmp_path, viscous):
     from carotid.flow.simulate import simulate
 
     mesh = tube_mesh(SMALL, split_outlet=True)
-    simulate(mesh, tmp_path / "a", _params(viscous=viscous, checkpoint_every=8))
+    probe = (("mid", (0.0, 0.0, 0.25 * SMALL.length)),)
+    simulate(mesh, tmp_path / "a", _params(viscous=viscous, checkpoint_every=8, probes=probe))
     full, _ = load_checkpoint(tmp_path / "a" / "flow" / "checkpoint.npz")
 
     class Killed(Exception):
@@ -201,10 +202,14 @@ def test_resume_equals_uninterrupted(tmp_path, viscous):
             raise Killed
 
     with pytest.raises(Killed):
-        simulate(mesh, tmp_path / "b", _params(viscous=viscous, checkpoint_every=8), progress=kill)
-    summary = simulate(mesh, tmp_path / "b", _params(viscous=viscous, checkpoint_every=8), resume=True)
+        simulate(mesh, tmp_path / "b", _params(viscous=viscous, checkpoint_every=8, probes=probe), progress=kill)
+    summary = simulate(mesh, tmp_path / "b", _params(viscous=viscous, checkpoint_every=8, probes=probe), resume=True)
     resumed, _ = load_checkpoint(tmp_path / "b" / "flow" / "checkpoint.npz")
     assert resumed["step"] == full["step"] and summary["steps"] == full["step"]
+    # the probe series of the checkpoint continue: the same samples as the uninterrupted run's
+    series = [np.loadtxt(tmp_path / run / "flow" / "probes.csv", delimiter=",", skiprows=1) for run in "ab"]
+    assert series[0].shape == series[1].shape and len(series[0]) >= 5
+    assert np.abs(series[0] - series[1]).max() <= 1e-10 * np.abs(series[0]).max()
     for key in ("u", "p"):
         assert np.abs(resumed[key] - full[key]).max() <= 1e-10 * np.abs(full[key]).max()
     # outputs: readable series, indices surface, summary

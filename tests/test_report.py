@@ -107,6 +107,27 @@ def test_verdict_states_the_grading_of_geometry_json(demo_run):
     assert f">{html_escape(expected)}</span>" in verdict
 
 
+def test_first_page_shows_the_virtual_duplex_of_summary_json(demo_run):
+    """The duplex table beside the NASCET: readable labels, units, and the numbers of flow/summary.json."""
+    import json
+
+    proc, out = demo_run
+    assert proc.returncode == 0, proc.stderr
+    duplex = json.loads((out / "case" / "flow" / "summary.json").read_text())["duplex"]
+    table = re.search(r'id="duplex".*?</div></div>', _first_page((out / "case" / "report.html").read_text()), re.S)[0]
+    ica, cca = duplex["gates"]["ICA"], duplex["gates"]["CCA"]
+    for text in (f"<th>ICA PSV</th><td>{ica['psv_cm_s']:.0f} cm/s</td><td>{html_escape(duplex['sru']['by_psv'])}",
+                 f"<th>ICA EDV</th><td>{ica['edv_cm_s']:.0f} cm/s</td><td>{html_escape(duplex['sru']['by_edv'])}",
+                 f"<th>ICA/CCA PSV ratio</th><td>{duplex['psv_ratio']:.2f}</td>",
+                 f"<th>CCA PSV / EDV</th><td>{cca['psv_cm_s']:.0f} / {cca['edv_cm_s']:.0f} cm/s</td>",
+                 f"{duplex['pressure']['drop_mean_mmhg']:.1f} / {duplex['pressure']['drop_peak_systole_mmhg']:.1f} mmHg",
+                 f"<th>NASCET (geometry)</th><td>{100 * duplex['nascet']:.1f} %</td>",
+                 f">{html_escape(duplex['sru']['grade'])}</span> SRU grade from the ICA PSV"):
+        assert text in table, text
+    # the demo's split outlets give relative pressures: no ratio, and the first cycle is said to start from rest
+    assert duplex["pressure"]["ratio_mean"] is None and "no ratio" in table and "from rest" in table
+
+
 def html_escape(text: str) -> str:
     import html
 

@@ -17,7 +17,10 @@ gates sit
 Over the last whole cycle, PSV is the largest reading and EDV the reading at end diastole: the smallest reading
 over the ``END_DIASTOLE_WINDOW`` (30 %) of the cycle before the systolic peak, i.e. the foot of the systolic
 upstroke, where the SRU consensus reads it (just before the next upstroke).  The cycle's last sample is not used:
-a waveform may start anywhere in the cycle (the built-in one starts in late diastole, 55 ms before the foot).
+a waveform may start anywhere in the cycle (the built-in one starts in late diastole, 55 ms before the foot).  The
+window wraps round the cycle's start; in a run's first cycle, which starts from rest, its first ``START_UP``
+(10 %) is start-up and left out, so the late diastole at the cycle's end stands for the foot (for the built-in
+waveform this reads the velocity 55 ms before the foot: a few % above it; run two cycles or more to avoid it).
 
 Pressure across the stenosis: proximal at the CCA gate's centre (where a catheter measuring the translesional
 gradient sits), distal on the ICA axis ``DISTAL_DIAMETERS`` (3) distal ICA diameters beyond the far end of the
@@ -79,11 +82,15 @@ SRU_RATIO = (2.0, 4.0)
 SRU_EDV_CM_S = (40.0, 100.0)
 """SRU consensus ICA EDV bounds, cm/s."""
 
+START_UP = 0.1
+"""In a run's first cycle (from rest), the samples of this fraction of the cycle are start-up, not end diastole."""
+
 DOPPLER_PSV_CM_S = (10.0, 250.0)
 """Plausible CCA peak systolic velocities for ``--doppler-cca``, cm/s."""
 
 
-def peak_and_end_diastole(times: np.ndarray, values: np.ndarray, period: float) -> tuple[int, int]:
+def peak_and_end_diastole(times: np.ndarray, values: np.ndarray, period: float,
+                          settled: float = -np.inf) -> tuple[int, int]:
     """Indices of the systolic peak and of end diastole in one cycle of samples.
 
     Parameters
@@ -94,16 +101,18 @@ def peak_and_end_diastole(times: np.ndarray, values: np.ndarray, period: float) 
         Velocity (or speed) samples, m/s.
     period : float
         Cycle length, s.
+    settled : float
+        Samples before this time (s) are not end diastole (the start-up of a run from rest).
 
     Returns
     -------
     (int, int)
         The largest sample, and the smallest sample within ``END_DIASTOLE_WINDOW * period`` before it (the times
-        taken modulo the period, so the window wraps round the cycle's start).
+        taken modulo the period, so the window wraps round the cycle's start), at or after ``settled``.
     """
     peak = int(np.argmax(values))
     before = np.mod(times[peak] - times, period)
-    window = np.flatnonzero(before <= END_DIASTOLE_WINDOW * period)
+    window = np.flatnonzero((before <= END_DIASTOLE_WINDOW * period) & (times >= settled))
     return peak, int(window[np.argmin(values[window])])
 
 
@@ -299,9 +308,10 @@ def duplex_summary(times: np.ndarray, values: dict, specs: dict, period: float, 
     from carotid.report.checks import stenosis_category
 
     gates = {}
+    settled = START_UP * period if times[0] <= 0.0 else -np.inf  # a first cycle, from rest
     for name in ("ICA_gate", "CCA_gate"):
         speed = values[name][:, 3]
-        peak, end = peak_and_end_diastole(times, speed, period)
+        peak, end = peak_and_end_diastole(times, speed, period, settled)
         spec = specs[name]
         gates[name.split("_")[0]] = {
             "position_mm": [float(v) for v in spec.centre_mm], "gate_radius_mm": spec.radius_mm, **spec.info,
@@ -334,12 +344,14 @@ def duplex_summary(times: np.ndarray, values: dict, specs: dict, period: float, 
         "gates": gates, "psv_ratio": ratio, "pressure": pressure, "sru": sru,
         "nascet": grade["nascet"], "nascet_category": category, "ecst": grade["ecst"],
         "samples": len(times), "cycle_from_s": float(times[0]), "cycle_to_s": float(times[-1]),
+        "first_cycle": bool(times[0] <= 0.0),
         "definitions": {
             "gate": f"sphere on the axis, radius {GATE_RADIUS_FRACTION:g} x the local inscribed radius, at most "
                     f"{GATE_RADIUS_CAP_MM:g} mm, 43 sample points; reading = the largest |u| among them",
             "psv": "largest gate reading over the last cycle",
             "edv": f"smallest gate reading over the {100 * END_DIASTOLE_WINDOW:g} % of the cycle before the systolic "
-                   "peak (the foot of the upstroke, the SRU convention)",
+                   "peak (the foot of the upstroke, the SRU convention); in a first cycle from rest, not in its first "
+                   f"{100 * START_UP:g} % (start-up), so that the cycle's end stands for the end diastole before it",
             "cca_gate": f"{CCA_GATE_MM:g} mm proximal to the bifurcation point along the CCA, or as far as the CCA "
                         "inside the mesh allows (arclength_from_bifurcation_mm)",
             "plaque": f"ECST of the narrowest ICA section >= {PLAQUE_ECST:g}",

@@ -59,6 +59,8 @@ th { background: #f6f6f6; font-weight: normal; }
 .more { display: grid; grid-template-columns: 1fr 1fr; gap: 14px; align-items: start; }
 .more figure img { max-height: 560px; width: auto; }
 .verdict table { font-size: 0.8em; margin: 0; } .verdict p { margin: 0.2em 0 0.4em; }
+#duplex { margin-top: 0.4em; } #duplex p.missing { font-size: 0.75em; } #duplex td, #duplex th { white-space: nowrap; }
+#duplex .cols { display: flex; gap: 12px; align-items: start; }
 .verdict .grade { font-size: 1.9em; font-weight: 700; }
 .badge { display: inline-block; padding: 0.1em 0.5em; border-radius: 4px; color: white; font-weight: 600; }
 .mild { background: #2a7d2e; } .moderate { background: #c77800; } .severe { background: #b22; }
@@ -330,26 +332,28 @@ def duplex_html(flow: dict) -> str:
         return f'<div class="verdict" id="duplex"><h3>Virtual duplex</h3><p class="missing">None: {html.escape(reason)}.</p></div>'
     ica, cca, sru, pressure = duplex["gates"]["ICA"], duplex["gates"]["CCA"], duplex["sru"], duplex["pressure"]
     ratio = pressure["ratio_mean"]
-    rows = [("ICA PSV / EDV (cm/s)", f"{ica['psv_cm_s']:.0f} / {ica['edv_cm_s']:.0f}", sru["by_psv"], sru["by_edv"]),
-            ("CCA PSV / EDV (cm/s)", f"{cca['psv_cm_s']:.0f} / {cca['edv_cm_s']:.0f}", "", ""),
-            ("ICA/CCA PSV ratio", f"{duplex['psv_ratio']:.2f}", sru["by_ratio"], ""),
-            ("pressure drop, mean / peak systole (mmHg)",
-             f"{pressure['drop_mean_mmhg']:.1f} / {pressure['drop_peak_systole_mmhg']:.1f}", "", ""),
-            ("pressure ratio distal/proximal, mean", "–" if ratio is None else f"{ratio:.3f}", "", ""),
-            ("NASCET (geometry)", f"{100 * duplex['nascet']:.1f} %", duplex["nascet_category"], "")]
-    body = "".join(f"<tr><th>{html.escape(k)}</th><td>{html.escape(v)}</td><td>{html.escape(a)}</td>"
-                   f"<td>{html.escape(b)}</td></tr>" for k, v, a, b in rows)
+    rows = [("ICA PSV", f"{ica['psv_cm_s']:.0f} cm/s", sru["by_psv"]),
+            ("ICA EDV", f"{ica['edv_cm_s']:.0f} cm/s", sru["by_edv"]),
+            ("ICA/CCA PSV ratio", f"{duplex['psv_ratio']:.2f}", sru["by_ratio"]),
+            ("CCA PSV / EDV", f"{cca['psv_cm_s']:.0f} / {cca['edv_cm_s']:.0f} cm/s", ""),
+            ("pressure drop, mean / systole", f"{pressure['drop_mean_mmhg']:.1f} / "
+             f"{pressure['drop_peak_systole_mmhg']:.1f} mmHg", ""),
+            ("pressure ratio distal/proximal", "–" if ratio is None else f"{ratio:.3f} (mean)", ""),
+            ("NASCET (geometry)", f"{100 * duplex['nascet']:.1f} %", duplex["nascet_category"])]
+    body = "".join(f"<tr><th>{html.escape(k)}</th><td>{html.escape(v)}</td><td>{html.escape(c)}</td></tr>"
+                   for k, v, c in rows)
     grade = sru["grade"]
     badge = CATEGORY_CLASS.get(grade, "mild" if grade == "normal" else "severe")
     where = (f"Gates (spheres of {ica['gate_radius_mm']:.2f} and {cca['gate_radius_mm']:.2f} mm on the axis): ICA "
              f"{ica['arclength_from_bifurcation_mm']:.1f} mm distal, CCA {cca['arclength_from_bifurcation_mm']:.1f} mm "
-             "proximal to the bifurcation; category of each criterion beside it (SRU: PSV, then EDV). Pressures "
+             "proximal to the bifurcation; SRU category of each criterion beside it. Pressures "
              + ("absolute (lumped outlets)." if ratio is not None else "relative (prescribed split): no ratio."))
-    partial = " <b>Partial cycle.</b>" if duplex.get("partial") else ""
+    partial = (" Partial cycle: PSV and EDV of part of a cycle." if duplex.get("partial") else
+               " First cycle, from rest: EDV read at the cycle's end." if duplex.get("first_cycle") else "")
     return (f'<div class="verdict" id="duplex"><h3>Virtual duplex (SRU consensus, Grant 2003)</h3>'
             f'<p><span class="badge {badge}">{html.escape(grade)}</span> SRU grade from the ICA PSV'
-            f'{"" if sru["concordant"] else "; the criteria disagree"}</p><table>{body}</table>'
-            f'<p class="missing">{html.escape(where)}{partial}</p></div>')
+            f'{"" if sru["concordant"] else "; the criteria disagree"}</p><div class="cols"><table>{body}</table>'
+            f'<p class="missing">{html.escape(where + partial)}</p></div></div>')
 
 
 def calibration_rows(calibration: dict) -> list[tuple]:
@@ -444,9 +448,10 @@ def summary_html(case: Case) -> str:
     notes = "".join(f"<li>{html.escape(w)}</li>" for w in warnings) or '<li class="ok">No stale, partial or ' \
                                                                         "failed results.</li>"
     profile = profile_figure(case)
-    top = [verdict_html(case.geometry) + duplex_html(case.flow),
-           _figure("Lumen diameter along the CCA and the graded branch, with the stenosis and its references",
-                   profile, "profile") if profile else '<p class="missing">No centerlines: no diameter profile.</p>',
+    top = [verdict_html(case.geometry),
+           "<div>" + (_figure("Lumen diameter along the CCA and the graded branch, with the stenosis and its references",
+                              profile, "profile") if profile else
+                      '<p class="missing">No centerlines: no diameter profile.</p>') + duplex_html(case.flow) + "</div>",
            f'<div class="warnings" id="warnings"><h3>Warnings</h3><ul>{notes}</ul></div>']
     parts = [f'<div class="top">{"".join(top)}</div>']
 
