@@ -263,7 +263,10 @@ class FlowStageParameters:
         if self.doppler_cca_psv or self.doppler_cca_edv:
             from carotid.flow.duplex import check_doppler
 
-            check_doppler(self.doppler_cca_psv, self.doppler_cca_edv)
+            try:
+                check_doppler(self.doppler_cca_psv, self.doppler_cca_edv)
+            except CarotidError as exc:
+                raise CarotidError(f"bad simulate parameter: doppler_cca_psv, doppler_cca_edv: {exc}") from None
         return self
 
 

@@ -118,8 +118,9 @@ class Case:
 
 
 # Unit suffixes of record keys and how the tables print them.
-_UNITS = (("_per_mm", "1/mm"), ("_m3s", "m³/s"), ("_mm3", "mm³"), ("_mm2", "mm²"), ("_mm", "mm"),
-          ("_deg", "°"), ("_pa", "Pa"), ("_mb", "MB"), ("_hu", "HU"), ("_s", "s"))
+_UNITS = (("_per_mm", "1/mm"), ("_m3s", "m³/s"), ("_mm3", "mm³"), ("_mm2", "mm²"), ("_mmhg", "mmHg"), ("_mm", "mm"),
+          ("_deg", "°"), ("_pa", "Pa"), ("_mb", "MB"), ("_hu", "HU"), ("_cm_s", "cm/s"), ("_ml_s", "mL/s"),
+          ("_m_s", "m/s"), ("_s", "s"))
 
 
 def readable(key: str) -> str:
