@@ -126,6 +126,12 @@ def test_first_page_shows_the_virtual_duplex_of_summary_json(demo_run):
         assert text in table, text
     # the demo's split outlets give relative pressures: no ratio, and the first cycle is said to start from rest
     assert duplex["pressure"]["ratio_mean"] is None and "no ratio" in table and "from rest" in table
+    # the gates: at the graded ICA section, and 20 mm (or as far as the mesh allows) up the CCA; probes.csv holds them
+    grade = json.loads((out / "case" / "geometry.json").read_text())["stenosis"]
+    assert grade["branch"] == "ICA" and np.allclose(ica["position_mm"], grade["location_mm"], atol=1e-6)
+    assert 0.0 < cca["arclength_from_bifurcation_mm"] <= 20.0 + 1e-9 and 0 < cca["gate_radius_mm"] <= 1.0
+    header = (out / "case" / "flow" / "probes.csv").read_text().splitlines()[0].split(",")
+    assert {"ICA_gate_speed_m_s", "CCA_gate_p_pa", "ICA_distal_p_pa", "CCA_1_speed_m_s"} <= set(header)
 
 
 def html_escape(text: str) -> str:

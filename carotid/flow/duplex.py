@@ -205,7 +205,9 @@ def duplex_probes(cl, geometry: dict, locator: PointLocator) -> tuple[list[Probe
     if cca_range is None or ica_range is None:
         return [], {"reason": "the CCA or the ICA centerline does not run inside the mesh"}
     at_ica = float(s_ica[np.argmin(np.linalg.norm(ica.points - np.asarray(grade["location_mm"]), axis=1))])
-    at_cca = float(np.clip(s_cca[-1] - CCA_GATE_MM, *cca_range))
+    bifurcation = cl.bifurcation if np.all(np.isfinite(cl.bifurcation)) else cca.points[-1]
+    s_bif = float(s_cca[np.argmin(np.linalg.norm(cca.points - bifurcation, axis=1))])
+    at_cca = float(np.clip(s_bif - CCA_GATE_MM, *cca_range))
     far = float(grade["extent_from_bifurcation_mm"][1])
     at_distal = float(min(far + DISTAL_DIAMETERS * grade["distal_diameter_mm"], ica_range[1]))
     (p_ica, r_ica), (p_cca, r_cca) = _along(ica, s_ica, at_ica), _along(cca, s_cca, at_cca)
@@ -213,7 +215,7 @@ def duplex_probes(cl, geometry: dict, locator: PointLocator) -> tuple[list[Probe
     specs = [ProbeSpec("ICA_gate", p_ica, gate_radius_mm(r_ica), "gate",
                        {"branch": "ICA", "arclength_from_bifurcation_mm": at_ica, "local_radius_mm": r_ica}),
              ProbeSpec("CCA_gate", p_cca, gate_radius_mm(r_cca), "gate",
-                       {"branch": "CCA", "arclength_from_bifurcation_mm": float(s_cca[-1] - at_cca),
+                       {"branch": "CCA", "arclength_from_bifurcation_mm": s_bif - at_cca,
                         "local_radius_mm": r_cca}),
              ProbeSpec("ICA_distal", p_distal, 0.0, "pressure",
                        {"branch": "ICA", "arclength_from_bifurcation_mm": at_distal})]

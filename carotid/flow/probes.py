@@ -170,6 +170,8 @@ class ProbeSet:
     specs : list of ProbeSpec
         Probes, centres in mm.  A sample point of a sample volume outside the fluid (a gate clipped by the wall)
         is dropped; a centre outside the fluid is an error naming the probe.
+    locator : PointLocator, optional
+        Of ``mesh`` (one is built when not given).
 
     Raises
     ------
