@@ -224,3 +224,15 @@ def test_sru_grade_follows_the_psv_with_plaque_and_near_occlusion():
                       "concordant": False}
     assert sru_grade(231.0, 101.0, 4.1, plaque=True, near_occlusion=False)["concordant"]
     assert sru_grade(80.0, 10.0, 1.0, plaque=True, near_occlusion=True)["grade"] == "near occlusion"
+
+
+def test_start_up_samples_are_not_end_diastole_unless_nothing_else_is_there():
+    """A first cycle from rest: zero velocity at its start, systole at 0.15 s, late diastole falling to 0.3 at
+    its end; the start-up is left out, so the end diastole is read at the cycle's end."""
+    times = np.linspace(0.0, 1.0, 101)
+    values = np.r_[np.zeros(5), np.linspace(0.5, 1.0, 11), np.linspace(0.95, 0.3, 85)]
+    assert times[peak_and_end_diastole(times, values, 1.0)[1]] == 0.0  # without it: the rest state
+    peak, end = peak_and_end_diastole(times, values, 1.0, settled=0.1)
+    assert times[peak] == pytest.approx(0.15) and times[end] == pytest.approx(1.0)
+    short = slice(0, 8)  # a run shorter than the start-up: its samples are all there is
+    assert peak_and_end_diastole(times[short], values[short], 1.0, settled=0.1)[1] == 0

@@ -102,7 +102,8 @@ def peak_and_end_diastole(times: np.ndarray, values: np.ndarray, period: float,
     period : float
         Cycle length, s.
     settled : float
-        Samples before this time (s) are not end diastole (the start-up of a run from rest).
+        Samples before this time (s) are not end diastole (the start-up of a run from rest), unless the window
+        holds no other (a run shorter than that).
 
     Returns
     -------
@@ -112,7 +113,8 @@ def peak_and_end_diastole(times: np.ndarray, values: np.ndarray, period: float,
     """
     peak = int(np.argmax(values))
     before = np.mod(times[peak] - times, period)
-    window = np.flatnonzero((before <= END_DIASTOLE_WINDOW * period) & (times >= settled))
+    window = before <= END_DIASTOLE_WINDOW * period
+    window = np.flatnonzero(window & (times >= settled) if np.any(window & (times >= settled)) else window)
     return peak, int(window[np.argmin(values[window])])
 
 
