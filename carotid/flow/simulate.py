@@ -7,7 +7,10 @@ by Murray's law or user ratios, imposed every step, or follow resistance / RCR l
 :mod:`carotid.flow.outlets`).  Outputs are written every ``output_every`` steps and checkpoints every
 ``checkpoint_every`` steps, and at the step a Ctrl-C (SIGINT) interrupts; ``resume=True`` continues from the
 last checkpoint and, the run being deterministic (the time-step sequence follows from the stored state, the
-pressure warm start is stored), ends with the same fields as an uninterrupted run.
+pressure warm start is stored), ends with the same fields as an uninterrupted run.  Probes (the user's points, the
+Doppler gates, the centreline probes; :mod:`carotid.flow.probes`, :mod:`carotid.flow.duplex`) are sampled from the
+solver's state after every step, their series kept in the checkpoints, and the virtual duplex of the last cycle
+goes to the summary; with measured CCA velocities the inflow is calibrated to them first.
 """
 
 from __future__ import annotations
