@@ -236,3 +236,35 @@ def test_start_up_samples_are_not_end_diastole_unless_nothing_else_is_there():
     assert times[peak] == pytest.approx(0.15) and times[end] == pytest.approx(1.0)
     short = slice(0, 8)  # a run shorter than the start-up: its samples are all there is
     assert peak_and_end_diastole(times[short], values[short], 1.0, settled=0.1)[1] == 0
+
+
+def test_gates_follow_the_centerlines_inside_the_mesh():
+    """A straight tube (z 0-30 mm, radius 2 mm) read as a CCA up to z = 12 mm and an ICA beyond, narrowed at
+    z = 20 mm, each centerline running 2 mm beyond its cap as a clipped surface's does: the ICA gate sits at the
+    narrowest section, the CCA gate as far up the CCA as the mesh allows (20 mm is beyond its inlet: one diameter
+    from the inlet cap), the distal pressure point one diameter before the outlet; a narrowest section outside
+    the mesh gives no gates."""
+    from carotid.centerline.model import Branch, Centerlines
+
+    mesh = tube_mesh(TubeSpec(radius=2.0, length=30.0, n_square=4, n_core=2, n_layers=2, first_layer=0.2,
+                              growth=1.3, n_axial=15))
+    z = np.linspace(-2.0, 32.0, 341)
+    axis = np.column_stack([np.zeros_like(z), np.zeros_like(z), z])
+    radius = np.where(np.abs(z - 20.0) < 0.5, 1.2, 2.0)
+    cca, ica = z <= 12.0, z >= 12.0
+    cl = Centerlines([Branch("CCA", axis[cca], radius[cca]), Branch("ICA", axis[ica], radius[ica])],
+                     np.array([0.0, 0.0, 12.0]))
+    grade = {"branch": "ICA", "location_mm": [0.0, 0.0, 20.0], "extent_from_bifurcation_mm": [7.5, 8.5],
+             "distal_diameter_mm": 4.0, "nascet": 0.4, "ecst": 0.4, "min_diameter_mm": 2.4}
+    locator = PointLocator(mesh.points, mesh.tets)
+    specs, meta = duplex.duplex_probes(cl, {"stenoses": [grade]}, locator)
+    found = {spec.name: spec for spec in specs}
+    assert np.allclose(found["ICA_gate"].centre_mm, [0, 0, 20.0]) and found["ICA_gate"].radius_mm == pytest.approx(0.6)
+    assert found["CCA_gate"].centre_mm[2] == pytest.approx(4.0, abs=0.11)
+    assert found["CCA_gate"].info["arclength_from_bifurcation_mm"] == pytest.approx(8.0, abs=0.11)
+    assert found["ICA_distal"].centre_mm[2] == pytest.approx(26.0, abs=0.11)  # 3 diameters beyond is past the end
+    ProbeSet(mesh, specs, locator)  # all inside
+    grade["location_mm"] = [0.0, 0.0, 13.0]  # at the ICA's origin: the bifurcation end is no cap, it is graded
+    assert np.allclose(duplex.duplex_probes(cl, {"stenoses": [grade]}, locator)[0][0].centre_mm, [0, 0, 13.0])
+    grade["location_mm"] = [0.0, 0.0, 31.0]
+    assert duplex.duplex_probes(cl, {"stenoses": [grade]}, locator)[0] == []

@@ -160,12 +160,14 @@ def _along(branch, s: np.ndarray, at) -> tuple[np.ndarray, float]:
 
 
 def _inside_range(branch, s: np.ndarray, locator: PointLocator) -> tuple[float, float] | None:
-    """Arc lengths (mm) of the first and last points of ``branch`` inside the mesh, pulled in by
-    ``END_MARGIN_DIAMETERS`` local diameters; None when no point is inside or nothing is left."""
+    """Arc lengths (mm) of the first and last points of ``branch`` inside the mesh, each pulled in by
+    ``END_MARGIN_DIAMETERS`` local diameters where the centerline leaves the mesh there (through a cap; not at the
+    bifurcation); None when no point is inside or nothing is left."""
     inside = np.flatnonzero(locator.locate(branch.points * MM)[0] >= 0)
     if not inside.size:
         return None
-    margin = 2.0 * END_MARGIN_DIAMETERS * branch.radii[inside[[0, -1]]]
+    leaves = np.array([inside[0] > 0, inside[-1] < len(s) - 1])
+    margin = 2.0 * END_MARGIN_DIAMETERS * branch.radii[inside[[0, -1]]] * leaves
     lo, hi = s[inside[0]] + margin[0], s[inside[-1]] - margin[1]
     return (float(lo), float(hi)) if lo <= hi else None
 
@@ -207,6 +209,9 @@ def duplex_probes(cl, geometry: dict, locator: PointLocator) -> tuple[list[Probe
     if cca_range is None or ica_range is None:
         return [], {"reason": "the CCA or the ICA centerline does not run inside the mesh"}
     at_ica = float(s_ica[np.argmin(np.linalg.norm(ica.points - np.asarray(grade["location_mm"]), axis=1))])
+    if not ica_range[0] <= at_ica <= ica_range[1]:
+        return [], {"reason": f"the narrowest ICA section ({at_ica:.1f} mm from the bifurcation) is not a diameter "
+                              "inside the mesh"}
     bifurcation = cl.bifurcation if np.all(np.isfinite(cl.bifurcation)) else cca.points[-1]
     s_bif = float(s_cca[np.argmin(np.linalg.norm(cca.points - bifurcation, axis=1))])
     at_cca = float(np.clip(s_bif - CCA_GATE_MM, *cca_range))
