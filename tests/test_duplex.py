@@ -59,6 +59,12 @@ def test_a_linear_field_is_recovered_exactly_at_interior_points(probe_tube):
     assert _linear_recovery_error(mesh, points) < 1e-12
 
 
+def test_points_the_nearest_centroids_miss_are_found_by_the_box_search(probe_tube, monkeypatch):
+    mesh, points = probe_tube
+    monkeypatch.setattr(probes, "CANDIDATES", (1,))  # most points are not in the element of the nearest centroid
+    assert _linear_recovery_error(mesh, points) < 1e-12
+
+
 def test_permuted_barycentric_weights_fail_the_linear_recovery(probe_tube, monkeypatch):
     mesh, points = probe_tube
     right = probes.barycentric
