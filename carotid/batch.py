@@ -29,6 +29,7 @@ import numpy as np
 
 from carotid.config import Config
 from carotid.errors import CarotidError, check_ranges
+from carotid.flow.duplex import check_doppler
 from carotid.flow.indices import HIGH_OSI, LOW_TAWSS_PA, area_fraction, node_areas
 from carotid.flow.regions import INDEX_UNITS, REGION_INDICES, REGION_NAMES
 from carotid.io import atomic_path, read_json, write_json
@@ -58,6 +59,37 @@ GEOMETRY_KEYS = {
                                                         "other two branches' directions"))},
 }
 GEOMETRY_COLUMNS = {name: (unit, text) for name, (_, unit, text) in GEOMETRY_KEYS.items()}
+
+# The virtual duplex and the inflow calibration (flow/summary.json duplex and inflow_calibration,
+# carotid.flow.duplex): column -> (dotted key path in summary.json, unit, meaning).
+DUPLEX_KEYS = {
+    "ica_psv_cm_s": ("duplex.gates.ICA.psv_cm_s", "cm/s", "ICA peak systolic velocity at the narrowest ICA section: "
+                     "the largest speed in a Doppler gate on the axis over the last cycle"),
+    "ica_edv_cm_s": ("duplex.gates.ICA.edv_cm_s", "cm/s", "ICA end-diastolic velocity in that gate (the foot of the "
+                     "systolic upstroke)"),
+    "cca_psv_cm_s": ("duplex.gates.CCA.psv_cm_s", "cm/s", "CCA peak systolic velocity, gate 20 mm proximal to the "
+                     "bifurcation"),
+    "cca_edv_cm_s": ("duplex.gates.CCA.edv_cm_s", "cm/s", "CCA end-diastolic velocity in that gate"),
+    "psv_ratio": ("duplex.psv_ratio", "ratio", "ICA PSV / CCA PSV"),
+    "sru_grade": ("duplex.sru.grade", "", "grade of the SRU consensus criteria (Grant et al. 2003) from the ICA PSV: "
+                  "normal, <50 %, 50-69 %, >=70 % or near occlusion"),
+    "sru_concordant": ("duplex.sru.concordant", "", "whether ICA PSV, ICA/CCA ratio and ICA EDV give the same SRU "
+                       "category"),
+    "stenosis_pressure_drop_mmhg": ("duplex.pressure.drop_mean_mmhg", "mmHg", "time-averaged pressure drop from the "
+                                    "CCA gate to the ICA 3 diameters beyond the lesion"),
+    "stenosis_pressure_drop_systole_mmhg": ("duplex.pressure.drop_peak_systole_mmhg", "mmHg",
+                                            "that pressure drop at peak systole (the inflow's peak)"),
+    "stenosis_pressure_ratio": ("duplex.pressure.ratio_mean", "ratio", "time-averaged distal / proximal pressure "
+                                "across the stenosis (Pd/Pa); empty unless lumped outlets make pressures absolute"),
+    "doppler_cca_psv_cm_s": ("inflow_calibration.target_psv_cm_s", "cm/s", "measured CCA PSV the inflow was "
+                             "calibrated to (manifest or config); empty without calibration"),
+    "doppler_cca_edv_cm_s": ("inflow_calibration.target_edv_cm_s", "cm/s", "measured CCA EDV the inflow was "
+                             "calibrated to"),
+    "inflow_mean_ml_s": ("inflow_calibration.mean_flow_ml_s", "mL/s", "mean flow of the calibrated inflow"),
+}
+DUPLEX_COLUMNS = {name: (unit, text) for name, (_, unit, text) in DUPLEX_KEYS.items()}
+DOPPLER_COLUMNS = ("doppler_cca_psv", "doppler_cca_edv")
+"""Optional manifest columns: the measured CCA PSV and EDV of a case, cm/s (both or neither)."""
 
 # The wall region columns (flow/summary.json regions.statistics, carotid.flow.regions), each "REGION_INDEX_STAT" with
 # a unit suffix, or "REGION_area_mm2" and "REGION_..._area_fraction".
@@ -119,6 +151,7 @@ COHORT_COLUMNS = {
     "low_tawss_area_fraction": ("fraction", f"fraction of the wall area where the time-averaged wall shear stress "
                                             f"is below {LOW_TAWSS_PA} Pa"),
     **GEOMETRY_COLUMNS,
+    **DUPLEX_COLUMNS,
     **REGION_COLUMNS,
     **{f"seconds_{name}": ("s", f"time the {name} stage took when it ran") for name in STAGE_NAMES},
     "seconds_total": ("s", "time of all the stages that ran"),
@@ -135,10 +168,12 @@ class Case:
 
 
 def read_manifest(path: str | Path, default_config: str | Path | None = None) -> list[Case]:
-    """Read a manifest CSV with columns ``case_id,image[,config]`` (paths relative to the manifest).
+    """Read a manifest CSV with columns ``case_id,image[,config][,doppler_cca_psv,doppler_cca_edv]`` (paths
+    relative to the manifest).
 
     A case's ``config`` (TOML) replaces ``default_config`` (a path relative to the working directory) for
-    that case.  Duplicate ids, missing columns, empty cells, rows with too many fields and unreadable config
+    that case; its ``doppler_cca_psv`` and ``doppler_cca_edv`` (cm/s, both or neither) set the simulate stage's
+    calibrated inflow (:func:`carotid.flow.duplex.calibrate_inflow`).  Duplicate ids, missing columns, empty cells, rows with too many fields and unreadable config
     files are errors naming the manifest's line; a missing image *file* is not (that case fails alone).
     """
     path = Path(path)
@@ -168,6 +203,16 @@ def read_manifest(path: str | Path, default_config: str | Path | None = None) ->
             overrides = Config.from_toml(path.parent / config).sections if config else default
         except CarotidError as exc:
             raise CarotidError(f"{path}:{line}: {exc}") from None
+        doppler = [(row.get(name) or "").strip() for name in DOPPLER_COLUMNS]
+        if any(doppler):
+            try:
+                psv, edv = (float(v) for v in doppler)
+                check_doppler(psv, edv)
+            except (ValueError, CarotidError) as exc:
+                raise CarotidError(f"{path}:{line}: case {case_id}: {', '.join(DOPPLER_COLUMNS)} must be two "
+                                   f"velocities in cm/s ({exc})") from None
+            overrides = {**overrides, "simulate": {**overrides.get("simulate", {}), "doppler_cca_psv": psv,
+                                                   "doppler_cca_edv": edv}}
         cases.append(Case(case_id, path.parent / image, overrides))
     if not cases:
         raise CarotidError(f"{path}: a manifest needs a header with the columns case_id,image[,config] and rows")
@@ -241,11 +286,17 @@ def case_summary(case: Case, case_dir: Path, outcome: dict) -> dict:
         "tawss_gci_percent": "" if gci is None else 100.0 * gci,
         "osi_area_fraction": osi, "low_tawss_area_fraction": low_tawss,
         **{name: _lookup(shape, *key.split(".")) for name, (key, _, _) in GEOMETRY_KEYS.items()},
+        **{name: _cell_value(_lookup(flow, *key.split("."))) for name, (key, _, _) in DUPLEX_KEYS.items()},
         **{name: _lookup(regions, region, *filter(None, (index, stat)))
            for name, (region, index, stat) in REGION_KEYS.items()},
         **{f"seconds_{name}": seconds.get(name, "") for name in STAGE_NAMES},
         "seconds_total": sum(seconds.values()),
     }
+
+
+def _cell_value(value):
+    """A record value as a cohort.csv value: None (not applicable) as an empty cell."""
+    return "" if value is None else value
 
 
 def _cell(value) -> str:

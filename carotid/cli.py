@@ -302,8 +302,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", type=Path, metavar="TOML", help="parameters of every stage (see `carotid config`)")
     p.set_defaults(func=cmd_run)
 
-    p = sub.add_parser("batch", help="run a cohort (manifest CSV: case_id,image[,config]) on Dask; "
-                                     "exit 3 when some cases failed")
+    p = sub.add_parser("batch", help="run a cohort (manifest CSV: case_id,image[,config][,doppler_cca_psv,"
+                                     "doppler_cca_edv]) on Dask; exit 3 when some cases failed")
     p.add_argument("manifest", type=Path)
     p.add_argument("-o", "--output", type=Path, required=True, metavar="OUT_DIR")
     p.add_argument("--scheduler", metavar="ADDRESS", help="a running Dask scheduler (default: a LocalCluster)")

@@ -9,6 +9,7 @@ outputs.  Segmentation's own section lives beside it in
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -181,6 +182,14 @@ class FlowStageParameters:
     periodic_tol : float
         Stop at the first whole cycle whose TAWSS changed by less than this area-weighted L2 relative change
         from the previous cycle's, ``cycles`` being the maximum (0: run exactly ``cycles``).
+    probes : list of [x, y, z]
+        Probe points, mm LPS, named ``probe1``, ``probe2``, ...: velocity and pressure series in
+        ``flow/probes.csv`` and ``flow/probes.xdmf`` (with the Doppler gates and the centreline probes).
+    probes_file : str
+        CSV of further probe points, rows ``x, y, z[, name]`` in mm LPS (empty: none).
+    doppler_cca_psv, doppler_cca_edv : float
+        Measured CCA peak systolic and end-diastolic velocity, cm/s: the inflow is scaled and shaped so that the
+        inlet's Womersley centreline velocity matches them (0 PSV: the waveform as it is).
     """
 
     cycles: float = 3.0
@@ -206,12 +215,17 @@ class FlowStageParameters:
     rheology: str = "newtonian"
     force: bool = False
     periodic_tol: float = 0.0
+    probes: list = field(default_factory=list)
+    probes_file: str = ""
+    doppler_cca_psv: float = 0.0
+    doppler_cca_edv: float = 0.0
 
     # Blood and the analogue fluids of flow phantoms (water to glycerol mixtures).
     RANGES = {"cycles": (1e-3, 100.0), "dt": (0.0, 0.01), "output_every": (1, 10**7), "checkpoint_every": (1, 10**7),
               "flow_ml_s": (0.0, 1000.0), "rho": (500.0, 2000.0), "mu": (1e-4, 0.1), "periodic_tol": (0.0, 0.5),
               "mean_pressure_mmhg": (20.0, 200.0), "pulse_pressure_mmhg": (1.0, 150.0),
-              "proximal_fraction": (0.01, 0.5), "distal_pressure_mmhg": (0.0, 50.0), "backflow": (0.0, 1.0)}
+              "proximal_fraction": (0.01, 0.5), "distal_pressure_mmhg": (0.0, 50.0), "backflow": (0.0, 1.0),
+              "doppler_cca_psv": (0.0, 1000.0), "doppler_cca_edv": (0.0, 1000.0)}
 
     def flow_parameters(self):
         """The solver's ``FlowParameters``, validated."""
@@ -221,9 +235,17 @@ class FlowStageParameters:
 
         if self.waveform and self.flow_ml_s:
             raise CarotidError("bad simulate parameter: give a waveform file or a constant flow_ml_s, not both")
+        from carotid.flow.probes import read_probe_csv
+
         waveform = (read_waveform_csv(self.waveform) if self.waveform else
                     constant_waveform(self.flow_ml_s * ML) if self.flow_ml_s else None)
-        fields = {k: v for k, v in asdict(self).items() if k != "flow_ml_s"}
+        probes = [(f"probe{k + 1}", tuple(float(v) for v in xyz)) for k, xyz in enumerate(self.probes)]
+        if self.probes_file:
+            probes += read_probe_csv(self.probes_file, start=len(probes) + 1)
+        fields = {k: v for k, v in asdict(self).items()
+                  if k not in ("flow_ml_s", "probes_file", "doppler_cca_psv", "doppler_cca_edv")}
+        fields.update(probes=tuple(probes),
+                      doppler_cca=(self.doppler_cca_psv, self.doppler_cca_edv) if self.doppler_cca_psv else None)
         fields.update(dt=self.dt or None, waveform=waveform, split=tuple(self.split) or None,
                       resistance=tuple(self.resistance) or None,
                       rcr=tuple(tuple(float(v) for v in row) for row in self.rcr) or None)
@@ -234,6 +256,17 @@ class FlowStageParameters:
         check_ranges("simulate", self, self.RANGES)
         if self.split and (any(s <= 0 for s in self.split) or abs(sum(self.split) - 1) > 1e-6):
             raise CarotidError(f"bad simulate parameter: split ratios {self.split} must be positive and sum to 1")
+        for xyz in self.probes:
+            if not (isinstance(xyz, (list, tuple)) and len(xyz) == 3 and all(
+                    isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in xyz)):
+                raise CarotidError(f"bad simulate parameter: probes: {xyz!r} is not a point [x, y, z] in mm")
+        if self.doppler_cca_psv or self.doppler_cca_edv:
+            from carotid.flow.duplex import check_doppler
+
+            try:
+                check_doppler(self.doppler_cca_psv, self.doppler_cca_edv)
+            except CarotidError as exc:
+                raise CarotidError(f"bad simulate parameter: doppler_cca_psv, doppler_cca_edv: {exc}") from None
         return self
 
 

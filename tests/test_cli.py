@@ -182,3 +182,64 @@ def test_fluid_properties_and_a_constant_flow_reach_the_solver(tmp_path, capsys)
     assert code == 2 and "mu = 5.0 is outside" in err
     assert Config({"simulate": {"flow_ml_s": 4.5}}).parameters("simulate").flow_parameters().waveform.mean_m3s == \
         pytest.approx(4.5e-6)
+
+
+@pytest.fixture(scope="module")
+def tube_case(tmp_path_factory):
+    from carotid.flow.verify import TubeSpec, tube_mesh
+
+    case = tmp_path_factory.mktemp("tube")
+    tube_mesh(TubeSpec(n_square=4, n_core=3, n_layers=4, first_layer=0.08, growth=1.4, n_axial=4,
+                       length=4.0)).to_pyvista().save(case / "mesh.vtu")
+    return case
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--probe", "0", "0", "2", "--probe", "5", "0", "2"],
+     "probe 'probe2' at (5, 0, 2) mm LPS is outside the fluid domain of the mesh"),
+    (["--probe", "0", "0", "nan"], "probes: [0.0, 0.0, nan] is not a point"),
+    (["--probes", "{case}/missing.csv"], "cannot read the probe file"),
+    (["--probes", "{case}/bad.csv"], "bad.csv: line 2: expected 'x, y, z[, name]' in mm"),
+    (["--doppler-cca", "50", "60"], "the end-diastolic velocity (60 cm/s) must be at least 0 and below"),
+    (["--doppler-cca", "80", "-5"], "must be at least 0"),
+    (["--doppler-cca", "600", "20"], "a CCA peak systolic velocity of 600 cm/s is implausible"),
+    (["--doppler-cca", "0", "0"], "a CCA peak systolic velocity of 0 cm/s is implausible"),
+    (["--flow", "4", "--doppler-cca", "80", "20"], "--doppler-cca needs a pulsatile inflow waveform")])
+def test_bad_probes_and_doppler_values_exit_2_before_the_run(tube_case, capsys, argv, message):
+    (tube_case / "bad.csv").write_text("0,0,1\n0,0\n")
+    code, _, err = run_and_capture(capsys, ["simulate", tube_case, *[a.format(case=tube_case) for a in argv]])
+    assert code == 2 and len(err.strip().splitlines()) == 1 and message in err, err
+    assert not (tube_case / "flow").exists()
+
+
+def test_probes_and_calibrated_inflow_reach_the_outputs(tube_case, tmp_path, capsys):
+    import csv
+
+    import meshio
+
+    case = tmp_path / "case"
+    case.mkdir()
+    (case / "mesh.vtu").symlink_to(tube_case / "mesh.vtu")
+    (tmp_path / "points.csv").write_text("x,y,z,name\n0.5,0,3,mid\n")
+    code, out, err = run_and_capture(capsys, ["simulate", case, "--probe", "0", "0", "1", "--probes",
+                                              tmp_path / "points.csv", "--doppler-cca", "80", "20",
+                                              "--cycles", "0.01"])
+    assert code == 0, err
+    summary = json.loads((case / "flow" / "summary.json").read_text())
+    assert [p["name"] for p in summary["probes"]["points"]] == ["probe1", "mid"]
+    assert summary["probes"]["points"][1]["position_mm"] == [0.5, 0.0, 3.0]
+    assert summary["duplex"] == {"reason": "no centerlines.vtp in the case folder"}
+    calibration = summary["inflow_calibration"]
+    assert calibration["inlet_psv_cm_s"] == pytest.approx(80.0, rel=1e-6)
+    assert calibration["inlet_edv_cm_s"] == pytest.approx(20.0, rel=1e-6)
+    rows = list(csv.reader((case / "flow" / "probes.csv").read_text().splitlines()))
+    assert rows[0][:6] == ["time_s", "probe1_u_m_s", "probe1_v_m_s", "probe1_w_m_s", "probe1_speed_m_s",
+                           "probe1_p_pa"]
+    assert len(rows) - 1 == summary["probes"]["samples"] and len(rows[1]) == 11
+    with meshio.xdmf.TimeSeriesReader(case / "flow" / "probes.xdmf") as reader:
+        points, cells = reader.read_points_cells()
+        t, data, _ = reader.read_data(reader.num_steps - 1)
+    assert np.allclose(points, [[0.0, 0.0, 1e-3], [0.5e-3, 0.0, 3e-3]]) and cells[0].type == "vertex"
+    last = np.array(rows[-1], dtype=float)
+    assert t == pytest.approx(last[0]) and np.allclose(data["velocity"][1], last[6:9])
+    assert np.allclose(data["pressure"], last[[5, 10]])

@@ -190,7 +190,8 @@ def test_resume_equals_uninterrupted(tmp_path, viscous):
     from carotid.flow.simulate import simulate
 
     mesh = tube_mesh(SMALL, split_outlet=True)
-    simulate(mesh, tmp_path / "a", _params(viscous=viscous, checkpoint_every=8))
+    probe = (("mid", (0.0, 0.0, 0.25 * SMALL.length)),)
+    simulate(mesh, tmp_path / "a", _params(viscous=viscous, checkpoint_every=8, probes=probe))
     full, _ = load_checkpoint(tmp_path / "a" / "flow" / "checkpoint.npz")
 
     class Killed(Exception):
@@ -201,10 +202,20 @@ def test_resume_equals_uninterrupted(tmp_path, viscous):
             raise Killed
 
     with pytest.raises(Killed):
-        simulate(mesh, tmp_path / "b", _params(viscous=viscous, checkpoint_every=8), progress=kill)
-    summary = simulate(mesh, tmp_path / "b", _params(viscous=viscous, checkpoint_every=8), resume=True)
+        simulate(mesh, tmp_path / "b", _params(viscous=viscous, checkpoint_every=8, probes=probe), progress=kill)
+    summary = simulate(mesh, tmp_path / "b", _params(viscous=viscous, checkpoint_every=8, probes=probe), resume=True)
     resumed, _ = load_checkpoint(tmp_path / "b" / "flow" / "checkpoint.npz")
     assert resumed["step"] == full["step"] and summary["steps"] == full["step"]
+    # the probe series of the checkpoint continue: the same samples as the uninterrupted run's
+    series = [np.loadtxt(tmp_path / run / "flow" / "probes.csv", delimiter=",", skiprows=1) for run in "ab"]
+    assert series[0].shape == series[1].shape and len(series[0]) >= 5
+    assert np.abs(series[0] - series[1]).max() <= 1e-10 * np.abs(series[0]).max()
+    # resumed with another probe, the part already run is sampled from the output steps
+    other = (("other", (0.5, 0.0, 0.25 * SMALL.length)),)
+    simulate(mesh, tmp_path / "b", _params(viscous=viscous, checkpoint_every=8, probes=other), resume=True)
+    rebuilt = np.loadtxt(tmp_path / "b" / "flow" / "probes.csv", delimiter=",", skiprows=1)
+    records = load_checkpoint(tmp_path / "b" / "flow" / "checkpoint.npz")[1]["records"]
+    assert np.allclose(rebuilt[:, 0], [r["time"] for r in records], rtol=0, atol=1e-15)
     for key in ("u", "p"):
         assert np.abs(resumed[key] - full[key]).max() <= 1e-10 * np.abs(full[key]).max()
     # outputs: readable series, indices surface, summary

@@ -285,3 +285,38 @@ def test_cohort_columns_of_cycle_state_and_convergence_are_the_records(tmp_path)
     assert columns["tawss_gci_percent"]["unit"] == "%" and columns["indices_cycle_fraction"]["unit"] == "fraction"
     for name in ("indices_cycle_fraction", "periodic_status", "tawss_last_cycle_change", "tawss_gci_percent"):
         assert columns[name]["description"] == COHORT_COLUMNS[name][1]
+
+
+def test_manifest_doppler_columns_and_cohort_duplex_columns(tmp_path):
+    """doppler_cca_psv/edv of a manifest row reach that case's simulate section (bad values name the line); the
+    duplex and calibration columns of cohort.csv are the values of flow/summary.json, empty when absent."""
+    from carotid.batch import COHORT_COLUMNS, DUPLEX_KEYS, Case, case_summary, read_manifest, write_cohort
+    from carotid.errors import CarotidError
+
+    manifest = tmp_path / "manifest.csv"
+    manifest.write_text("case_id,image,doppler_cca_psv,doppler_cca_edv\na,a.nii.gz,85,22.5\nb,b.nii.gz,,\n")
+    a, b = read_manifest(manifest)
+    assert a.overrides["simulate"] == {"doppler_cca_psv": 85.0, "doppler_cca_edv": 22.5}
+    assert "simulate" not in b.overrides
+    for row, message in (("c,c.nii.gz,85,\n", "must be two velocities"), ("c,c.nii.gz,40,50\n", "below the peak"),
+                         ("c,c.nii.gz,fast,20\n", "must be two velocities")):
+        manifest.write_text("case_id,image,doppler_cca_psv,doppler_cca_edv\n" + row)
+        with pytest.raises(CarotidError, match=f"manifest.csv:2: case c: .*{message}"):
+            read_manifest(manifest)
+    case = tmp_path / "case"
+    (case / "flow").mkdir(parents=True)
+    (case / "flow" / "summary.json").write_text(json.dumps({
+        "duplex": {"gates": {"ICA": {"psv_cm_s": 251.5, "edv_cm_s": 90.25}, "CCA": {"psv_cm_s": 80.0, "edv_cm_s": 20.0}},
+                   "psv_ratio": 3.14375, "sru": {"grade": ">=70 %", "concordant": False},
+                   "pressure": {"drop_mean_mmhg": 12.5, "drop_peak_systole_mmhg": 40.0, "ratio_mean": None}},
+        "inflow_calibration": {"target_psv_cm_s": 80.0, "target_edv_cm_s": 20.0, "mean_flow_ml_s": 6.5}}))
+    write_cohort([case_summary(Case("case", tmp_path / "image.nii.gz", {}), case, {"status": "ok"})],
+                 tmp_path / "cohort.csv")
+    with open(tmp_path / "cohort.csv", newline="") as handle:
+        (row,) = csv.DictReader(handle)
+    assert row["ica_psv_cm_s"] == "251.5" and row["psv_ratio"] == "3.144" and row["sru_grade"] == ">=70 %"
+    assert row["sru_concordant"] == "False" and row["stenosis_pressure_ratio"] == ""
+    assert row["doppler_cca_psv_cm_s"] == "80" and row["inflow_mean_ml_s"] == "6.5"
+    columns = json.loads((tmp_path / "cohort.json").read_text())["columns"]
+    for name in DUPLEX_KEYS:
+        assert columns[name]["description"] == COHORT_COLUMNS[name][1] and name in row

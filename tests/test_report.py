@@ -107,6 +107,33 @@ def test_verdict_states_the_grading_of_geometry_json(demo_run):
     assert f">{html_escape(expected)}</span>" in verdict
 
 
+def test_first_page_shows_the_virtual_duplex_of_summary_json(demo_run):
+    """The duplex table beside the NASCET: readable labels, units, and the numbers of flow/summary.json."""
+    import json
+
+    proc, out = demo_run
+    assert proc.returncode == 0, proc.stderr
+    duplex = json.loads((out / "case" / "flow" / "summary.json").read_text())["duplex"]
+    table = re.search(r'id="duplex".*?</div></div>', _first_page((out / "case" / "report.html").read_text()), re.S)[0]
+    ica, cca = duplex["gates"]["ICA"], duplex["gates"]["CCA"]
+    for text in (f"<th>ICA PSV</th><td>{ica['psv_cm_s']:.0f} cm/s</td><td>{html_escape(duplex['sru']['by_psv'])}",
+                 f"<th>ICA EDV</th><td>{ica['edv_cm_s']:.0f} cm/s</td><td>{html_escape(duplex['sru']['by_edv'])}",
+                 f"<th>ICA/CCA PSV ratio</th><td>{duplex['psv_ratio']:.2f}</td>",
+                 f"<th>CCA PSV / EDV</th><td>{cca['psv_cm_s']:.0f} / {cca['edv_cm_s']:.0f} cm/s</td>",
+                 f"{duplex['pressure']['drop_mean_mmhg']:.1f} / {duplex['pressure']['drop_peak_systole_mmhg']:.1f} mmHg",
+                 f"<th>NASCET (geometry)</th><td>{100 * duplex['nascet']:.1f} %</td>",
+                 f">{html_escape(duplex['sru']['grade'])}</span> SRU grade from the ICA PSV"):
+        assert text in table, text
+    # the demo's split outlets give relative pressures: no ratio, and the first cycle is said to start from rest
+    assert duplex["pressure"]["ratio_mean"] is None and "no ratio" in table and "from rest" in table
+    # the gates: at the graded ICA section, and 20 mm (or as far as the mesh allows) up the CCA; probes.csv holds them
+    grade = json.loads((out / "case" / "geometry.json").read_text())["stenosis"]
+    assert grade["branch"] == "ICA" and np.allclose(ica["position_mm"], grade["location_mm"], atol=1e-6)
+    assert 0.0 < cca["arclength_from_bifurcation_mm"] <= 20.0 + 1e-9 and 0 < cca["gate_radius_mm"] <= 1.0
+    header = (out / "case" / "flow" / "probes.csv").read_text().splitlines()[0].split(",")
+    assert {"ICA_gate_speed_m_s", "CCA_gate_p_pa", "ICA_distal_p_pa", "CCA_1_speed_m_s"} <= set(header)
+
+
 def html_escape(text: str) -> str:
     import html
 

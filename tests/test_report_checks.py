@@ -54,6 +54,9 @@ def test_readable_labels_carry_units():
     assert readable("dt_s.min") == "dt › min (s)"
     assert readable("boundary_layer.first_height_mm.mean") == "boundary layer › first height › mean (mm)"
     assert readable("mass_balance.inflow_mean_m3s") == "mass balance › inflow mean (m³/s)"
+    assert readable("duplex.gates.ICA.psv_cm_s") == "duplex › gates › ICA › psv (cm/s)"
+    assert readable("duplex.pressure.drop_mean_mmhg") == "duplex › pressure › drop mean (mmHg)"
+    assert readable("inflow_calibration.b_ml_s") == "inflow calibration › b (mL/s)"
 
 
 def _copy_case(source, target):

@@ -27,6 +27,10 @@ def cmd_simulate(args) -> int:
     from carotid.stages import FlowStageParameters
 
     case = Path(args.case_dir)
+    if args.doppler_cca:
+        from carotid.flow.duplex import check_doppler
+
+        check_doppler(*args.doppler_cca)
     cycles = args.cycles if args.cycles is not None else 1.0 if args.convergence else 3.0
     stage = FlowStageParameters(cycles=cycles, dt=args.dt or 0.0, waveform=str(args.waveform or ""),
                                 split=list(_split(args.split) or []), turbulence=args.turbulence,
@@ -36,7 +40,10 @@ def cmd_simulate(args) -> int:
                                 checkpoint_every=args.checkpoint_every, force=args.force,
                                 flow_ml_s=args.flow or 0.0, rho=args.density, mu=args.viscosity,
                                 rheology=args.rheology,
-                                periodic_tol=args.periodic_tol)
+                                periodic_tol=args.periodic_tol, probes=[list(xyz) for xyz in args.probe or []],
+                                probes_file=str(args.probes or ""),
+                                doppler_cca_psv=args.doppler_cca[0] if args.doppler_cca else 0.0,
+                                doppler_cca_edv=args.doppler_cca[1] if args.doppler_cca else 0.0)
     params = stage.validate().flow_parameters()
     mesh = FlowMesh.from_vtu(case / "mesh.vtu")
     bar = tqdm(total=1.0, unit="cycle", file=sys.stderr, disable=None, dynamic_ncols=True,
@@ -65,6 +72,15 @@ def cmd_simulate(args) -> int:
         periodic = summary["periodic"]
         print(f"TAWSS change from the previous cycle: {', '.join(changes)} ({periodic['status']}"
               + (f", tolerance {periodic['tolerance']:.2%})" if periodic["tolerance"] else ")"))
+    duplex = summary["duplex"]
+    if "gates" in duplex:
+        gates = duplex["gates"]
+        print(f"virtual duplex: ICA PSV {gates['ICA']['psv_cm_s']:.0f} cm/s, EDV {gates['ICA']['edv_cm_s']:.0f} cm/s; "
+              f"CCA PSV {gates['CCA']['psv_cm_s']:.0f} cm/s; ICA/CCA {duplex['psv_ratio']:.2f}: SRU "
+              f"{duplex['sru']['grade']} (NASCET {100 * duplex['nascet']:.0f} % from the geometry); pressure drop "
+              f"{duplex['pressure']['drop_mean_mmhg']:.2f} mmHg mean")
+    if summary["probes"]:
+        print(f"probes: {len(summary['probes']['points'])} series in {case / 'flow' / 'probes.csv'}")
     if summary["partial"]:
         print(f"warning: {summary['indices_note']}", file=sys.stderr)
     return 0
@@ -133,6 +149,13 @@ def register(subparsers) -> None:
     inflow.add_argument("--waveform", type=Path, metavar="FILE", help="inlet flow CSV: time s, flow mL/s")
     inflow.add_argument("--flow", type=float, metavar="ML_S",
                         help="constant inflow in mL/s, for a steady case (each cycle is then 1 s)")
+    p.add_argument("--doppler-cca", nargs=2, type=float, metavar=("PSV", "EDV"),
+                   help="measured CCA peak systolic and end-diastolic velocity in cm/s: the inflow waveform is scaled "
+                        "and shaped (a q + b) so that the inlet's Womersley centreline velocity matches them")
+    p.add_argument("--probe", nargs=3, type=float, action="append", metavar=("X", "Y", "Z"),
+                   help="probe point in world mm (LPS), repeatable: velocity and pressure series in flow/probes.csv "
+                        "and flow/probes.xdmf")
+    p.add_argument("--probes", type=Path, metavar="FILE", help="CSV of probe points: x, y, z[, name] in mm (LPS)")
     p.add_argument("--density", type=float, default=1060.0, metavar="KG_M3", help="fluid density (default 1060)")
     p.add_argument("--viscosity", type=float, default=3.5e-3, metavar="PA_S",
                    help="dynamic viscosity (default 3.5e-3)")

@@ -474,7 +474,8 @@ def run_convergence(case_dir, params, refinement: float = 1.5, time_levels: bool
                     mesh_path = out / f"level{k}" / "mesh.vtu"
                 tets = quality["elements"]["tetrahedra"]
                 h = float(representative_size(quality["volume"]["mesh_mm3"], tets))
-                run = replace(params, dt=None if params.dt is None else params.dt * h / h_case)
+                # no user probes: a point near the wall may lie outside a coarsened mesh (the study is of the wall)
+                run = replace(params, dt=None if params.dt is None else params.dt * h / h_case, probes=())
                 edge = median_edge(check_surface(wall))
                 levels.append({"level": k, "h_mm": h, "tetrahedra": tets, "nodes": quality["elements"]["points"],
                                "wall_edge_mm": edge, "edge_factor": factor,

@@ -7,7 +7,10 @@ by Murray's law or user ratios, imposed every step, or follow resistance / RCR l
 :mod:`carotid.flow.outlets`).  Outputs are written every ``output_every`` steps and checkpoints every
 ``checkpoint_every`` steps, and at the step a Ctrl-C (SIGINT) interrupts; ``resume=True`` continues from the
 last checkpoint and, the run being deterministic (the time-step sequence follows from the stored state, the
-pressure warm start is stored), ends with the same fields as an uninterrupted run.
+pressure warm start is stored), ends with the same fields as an uninterrupted run.  Probes (the user's points, the
+Doppler gates, the centreline probes; :mod:`carotid.flow.probes`, :mod:`carotid.flow.duplex`) are sampled from the
+solver's state after every step, their series kept in the checkpoints, and the virtual duplex of the last cycle
+goes to the summary; with measured CCA velocities the inflow is calibrated to them first.
 """
 
 from __future__ import annotations
@@ -26,8 +29,10 @@ from threadpoolctl import threadpool_limits
 
 from carotid.errors import CarotidError
 from carotid.flow.cbs import CBSSolver, PressureSolver
+from carotid.flow.duplex import case_probes, duplex_summary
 from carotid.flow.mesh import INLET, MM, FlowMesh
 from carotid.flow.output import FlowWriter, load_checkpoint, save_checkpoint, write_wall_vtp
+from carotid.flow.probes import ProbeRecorder
 from carotid.flow.wss import WallShear
 from carotid.io import write_json
 
@@ -90,6 +95,12 @@ class FlowParameters:
         Stop at the end of the first whole cycle whose TAWSS differs from the previous cycle's by less than
         this area-weighted L2 relative change (:class:`CyclePeriodicity`), ``cycles`` being then the maximum;
         0: run exactly ``cycles``.
+    probes : tuple of (name, (x, y, z))
+        Probe points, mm LPS (:mod:`carotid.flow.probes`): their velocity and pressure series go to
+        ``flow/probes.csv`` and ``flow/probes.xdmf`` with the Doppler gates and the centreline probes.
+    doppler_cca : (float, float) or None
+        Measured CCA peak systolic and end-diastolic velocity, cm/s: the inflow is mapped to ``a q + b`` so that
+        the inlet's Womersley centreline velocity matches them (:func:`carotid.flow.duplex.calibrate_inflow`).
     """
 
     cycles: float = 3.0
@@ -117,6 +128,8 @@ class FlowParameters:
     pressure: str = "auto"
     force: bool = False
     periodic_tol: float = 0.0
+    probes: tuple = ()
+    doppler_cca: tuple | None = None
     extra: dict = field(default_factory=dict)
 
     def validate(self) -> FlowParameters:
@@ -144,6 +157,10 @@ class FlowParameters:
             raise CarotidError(f"--periodic-tol must be in [0, 1) (got {self.periodic_tol})")
         if not (0 < self.safety <= 1):
             raise CarotidError(f"the time-step safety factor must be in (0, 1] (got {self.safety})")
+        if self.doppler_cca is not None:
+            from carotid.flow.duplex import check_doppler
+
+            check_doppler(*self.doppler_cca)
         return self
 
     def fingerprint(self, waveform, mesh: FlowMesh) -> str:
@@ -151,7 +168,7 @@ class FlowParameters:
         output settings), the waveform and the mesh."""
         keys = {k: v for k, v in asdict(self).items()
                 if k not in ("cycles", "periodic_tol", "output_every", "checkpoint_every", "waveform", "extra",
-                             "force")}
+                             "force", "probes")}
         keys["waveform"] = np.round(np.r_[waveform.period_s, waveform.times_s, waveform.flow_m3s], 15).tolist()
         keys["checkpoint_format"] = CHECKPOINT_FORMAT
         digest = hashlib.sha256(json.dumps(keys, sort_keys=True, default=str).encode())
@@ -206,9 +223,9 @@ def stabilisation_velocity(waveform, inlet_area: float) -> float:
     return 2.0 * float(np.mean(np.abs(waveform.flow(t)))) / inlet_area
 
 
-def _build(mesh: FlowMesh, params: FlowParameters):
-    from carotid.flow.rheology import Rheology
-    from carotid.flow.turbulence import SpalartAllmaras
+def _inflow(mesh: FlowMesh, params: FlowParameters):
+    """The inflow waveform, its inlet profile and the Doppler calibration record (None without ``doppler_cca``)."""
+    from carotid.flow.duplex import calibrate_inflow
     from carotid.flow.waveform import carotid_waveform
     from carotid.flow.womersley import inlet_profile
 
@@ -218,7 +235,20 @@ def _build(mesh: FlowMesh, params: FlowParameters):
                            "through the CCA inlet on average (check the sign of the flow column)")
     nu = params.mu / params.rho
     nodes, pts, tris = mesh.face_patch(INLET)
-    profile = inlet_profile(pts, tris, mesh.face_normal(INLET), waveform, nu, params.n_harmonics)
+    if params.doppler_cca is None:
+        return waveform, inlet_profile(pts, tris, mesh.face_normal(INLET), waveform, nu, params.n_harmonics), None
+    psv, edv = params.doppler_cca
+    return calibrate_inflow(waveform, pts, tris, mesh.face_normal(INLET), nu, params.n_harmonics, psv / 100,
+                            edv / 100)
+
+
+def _build(mesh: FlowMesh, params: FlowParameters, inflow=None):
+    """Waveform, solver and wall shear of a run; ``inflow``: :func:`_inflow`'s result when already computed."""
+    from carotid.flow.rheology import Rheology
+    from carotid.flow.turbulence import SpalartAllmaras
+
+    waveform, profile, _ = inflow or _inflow(mesh, params)
+    nu = params.mu / params.rho
     turbulence = SpalartAllmaras(mesh, nu) if params.turbulence == "sa" else None
     solver = CBSSolver(mesh, profile.velocity, nu, split=params.split, dt=params.dt, safety=params.safety,
                        velocity_scale=stabilisation_velocity(waveform, mesh.face_area(INLET)),
@@ -318,7 +348,10 @@ def simulate(mesh, case_dir, params: FlowParameters | None = None, resume: bool 
     mesh = mesh if isinstance(mesh, FlowMesh) else FlowMesh.from_vtu(mesh)
     flow_dir = Path(case_dir) / "flow"
     ckpt = flow_dir / "checkpoint.npz"
-    waveform, solver, wall = _build(mesh, params)
+    probes, duplex = case_probes(case_dir, mesh, params.probes)  # a probe outside the fluid stops here
+    inflow = _inflow(mesh, params)
+    waveform, solver, wall = _build(mesh, params, inflow)
+    recorder = ProbeRecorder(probes, waveform.period_s)
     period = waveform.period_s
     t_end = params.cycles * period
     fp = params.fingerprint(waveform, mesh)
@@ -345,19 +378,23 @@ def simulate(mesh, case_dir, params: FlowParameters | None = None, resume: bool 
     writer = FlowWriter(flow_dir, mesh, wall.nodes, wall.local_faces)
     if resume:
         writer.truncate(meta["records"])
+        recorder.load(state, meta["records"], flow_dir)
     else:
         _output(writer, solver, wall, params, {"dt": 0.0, "cfl": 0.0, "inflow": solver.inflow(solver.u),
                                                "outflow": solver.outflows(solver.u).tolist(),
                                                "outflow_p1": solver.outflows(solver.u).tolist(), "imbalance": 0.0,
                                                "imbalance_p1": 0.0,
                                                "dp": 0.0})
-        _checkpoint(ckpt, solver, writer, fp, seconds)
+        recorder.record(solver.t, solver.u, solver.pressure_pa(params.rho), force=True)
+        _checkpoint(ckpt, solver, writer, fp, seconds, recorder)
     start = _time.perf_counter() - seconds
     periodicity = CyclePeriodicity(writer, mesh, wall, period)
     with _DeferredInterrupt() as interrupt:
-        _run_steps(solver, writer, wall, params, ckpt, fp, start, t_end, period, interrupt, progress, periodicity)
+        _run_steps(solver, writer, wall, params, ckpt, fp, start, t_end, period, interrupt, progress, periodicity,
+                   recorder)
     seconds = _time.perf_counter() - start
     summary = _finish(flow_dir, mesh, solver, wall, writer, params, waveform, seconds, periodicity)
+    summary.update(_probe_summary(flow_dir, solver, params, waveform, recorder, duplex, inflow[2]))
     write_json(summary, flow_dir / "summary.json")
     return summary
 
@@ -390,12 +427,14 @@ class _DeferredInterrupt:
 
 def _run_steps(solver: CBSSolver, writer: FlowWriter, wall: WallShear, params: FlowParameters, ckpt: Path, fp: str,
                start: float, t_end: float, period: float, interrupt: _DeferredInterrupt,
-               progress: Callable[[dict], None] | None, periodicity: CyclePeriodicity) -> None:
+               progress: Callable[[dict], None] | None, periodicity: CyclePeriodicity,
+               recorder: ProbeRecorder) -> None:
     """Step to ``t_end`` (s), writing outputs and checkpoints; KeyboardInterrupt after the checkpoint of an
     interrupted step.
 
     Every cycle end k T is stepped onto exactly and written, and closes the cycle's entry of ``periodicity``;
-    with ``params.periodic_tol`` > 0 the run stops at the first cycle end where it is met."""
+    with ``params.periodic_tol`` > 0 the run stops at the first cycle end where it is met.  The probes are sampled
+    after every step (:class:`carotid.flow.probes.ProbeRecorder` keeps those it needs)."""
     mesh = solver.mesh
     periodicity.update(solver.t)
     while solver.t < t_end * (1 - 1e-12) and not periodicity.reached(params.periodic_tol):
@@ -409,18 +448,20 @@ def _run_steps(solver: CBSSolver, writer: FlowWriter, wall: WallShear, params: F
                                f"|u| = {speed:.3g} m/s at {where} mm; the last good checkpoint is kept in {ckpt} "
                                "(try a smaller --dt or a finer mesh)")
         cycle_end = solver.t >= boundary * (1 - 1e-12)
-        if solver.step_count % params.output_every == 0 or cycle_end or solver.t >= t_end * (1 - 1e-12):
+        output = solver.step_count % params.output_every == 0 or cycle_end or solver.t >= t_end * (1 - 1e-12)
+        recorder.record(solver.t, solver.u, solver.pressure_pa(params.rho), force=output)
+        if output:
             _output(writer, solver, wall, params, _diagnostics(solver, info, params.rho))
         if cycle_end:
             periodicity.update(solver.t)
         last = solver.t >= t_end * (1 - 1e-12) or periodicity.reached(params.periodic_tol)
         if solver.step_count % params.checkpoint_every == 0 or last:
-            _checkpoint(ckpt, solver, writer, fp, _time.perf_counter() - start)
+            _checkpoint(ckpt, solver, writer, fp, _time.perf_counter() - start, recorder)
         if progress is not None:
             progress({"step": solver.step_count, "time": solver.t, "cycle": solver.t / period, "cfl": info.cfl,
                       "imbalance": info.imbalance, "end": t_end})
         if interrupt.requested:
-            _checkpoint(ckpt, solver, writer, fp, _time.perf_counter() - start)
+            _checkpoint(ckpt, solver, writer, fp, _time.perf_counter() - start, recorder)
             raise KeyboardInterrupt
 
 
@@ -441,8 +482,10 @@ def _output(writer: FlowWriter, solver: CBSSolver, wall: WallShear, params: Flow
     writer.records[-1]["diagnostics"] = diag
 
 
-def _checkpoint(path: Path, solver: CBSSolver, writer: FlowWriter, fp: str, seconds: float) -> None:
-    save_checkpoint(path, solver.state(), {"records": writer.records, "fingerprint": fp, "seconds": seconds})
+def _checkpoint(path: Path, solver: CBSSolver, writer: FlowWriter, fp: str, seconds: float,
+                recorder: ProbeRecorder) -> None:
+    save_checkpoint(path, {**solver.state(), **recorder.state()},
+                    {"records": writer.records, "fingerprint": fp, "seconds": seconds})
 
 
 class CyclePeriodicity:
@@ -597,3 +640,34 @@ def _finish(flow_dir, mesh, solver, wall, writer, params, waveform, seconds, per
         "settings": {k: v for k, v in asdict(params).items() if k not in ("waveform", "extra")},
         "outputs": len(writer.records),
     }
+
+
+def _probe_summary(flow_dir: Path, solver: CBSSolver, params: FlowParameters, waveform, recorder: ProbeRecorder,
+                   duplex: dict, calibration: dict | None) -> dict:
+    """Write the probe series (``probes.csv``, ``probes.xdmf``) and return the ``probes``, ``duplex`` and
+    ``inflow_calibration`` parts of summary.json."""
+    out = {"inflow_calibration": calibration}
+    if not len(recorder.probes):
+        return {**out, "probes": None, "duplex": {"reason": duplex.get("reason", "no probes")}}
+    recorder.write(flow_dir)
+    period = waveform.period_s
+    since = max(solver.t - period, 0.0)
+    times, values = recorder.arrays(since)
+    grid = np.linspace(0.0, period, 4096, endpoint=False)
+    peak = grid[np.argmax(waveform.flow(grid))]
+    out["probes"] = {"files": ["probes.csv", "probes.xdmf"], "samples": len(recorder.times),
+                     "interval_s": recorder.interval, "points": recorder.probes.describe()}
+    if "reason" in duplex or len(times) < 3:
+        out["duplex"] = {"reason": duplex.get("reason", "under three probe samples")}
+        return out
+    index = {name: k for k, name in enumerate(recorder.probes.names)}
+    specs = {spec.name: spec for spec in recorder.probes.specs}
+    result = duplex_summary(times, {name: values[:, index[name]] for name in ("ICA_gate", "CCA_gate",
+                                                                             "ICA_distal")},
+                            specs, period, since + np.mod(peak - since, period), solver.lumped is not None, duplex)
+    result["partial"] = bool(solver.t - since < period * (1 - 1e-9))
+    if calibration is not None:
+        calibration.update(gate_psv_cm_s=result["gates"]["CCA"]["psv_cm_s"],
+                           gate_edv_cm_s=result["gates"]["CCA"]["edv_cm_s"])
+    out["duplex"] = result
+    return out

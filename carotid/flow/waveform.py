@@ -127,7 +127,12 @@ class Waveform:
             raise CarotidError(f"target mean flow must be positive, got {mean_m3s} m^3/s")
         if mean <= 0:
             raise CarotidError(f"cannot scale a waveform whose mean flow is {mean:g} m^3/s to a positive mean")
-        return Waveform(self.period_s, self.times_s, self.flow_m3s * (mean_m3s / mean))
+        return self.affine(mean_m3s / mean, 0.0)
+
+    def affine(self, a: float, b: float) -> Waveform:
+        """The waveform ``a Q(t) + b`` (``b`` in m^3/s): its spline and harmonics are those of Q mapped the same
+        way, since both are linear in the samples and reproduce a constant."""
+        return Waveform(self.period_s, self.times_s, a * self.flow_m3s + b)
 
 
 def fourier_flow(coeffs: np.ndarray, omega: float, t) -> np.ndarray:

@@ -1,6 +1,7 @@
 """The self-contained HTML report of a case: ``CASE_DIR/report.html``.
 
-The first page is the clinical summary: the stenosis verdict, the diameter profile along the CCA and
+The first page is the clinical summary: the stenosis verdict beside the virtual duplex (ICA and CCA PSV and EDV,
+their ratio, the SRU consensus grade, the pressure drop across the lesion), the diameter profile along the CCA and
 ICA, the wall shear stress maps, the wall regions (CCA, bulb, ICA, ECA, stenosis) with the bifurcation
 geometry, the inflow waveform and outlet split, the cycle state (the TAWSS change of each cycle from
 the previous one), the grid convergence study of the wall indices (or a note that none was run), the wall
@@ -58,6 +59,8 @@ th { background: #f6f6f6; font-weight: normal; }
 .more { display: grid; grid-template-columns: 1fr 1fr; gap: 14px; align-items: start; }
 .more figure img { max-height: 560px; width: auto; }
 .verdict table { font-size: 0.8em; margin: 0; } .verdict p { margin: 0.2em 0 0.4em; }
+#duplex { margin-top: 0.4em; } #duplex p.missing { font-size: 0.75em; } #duplex td, #duplex th { white-space: nowrap; }
+#duplex .cols { display: flex; gap: 12px; align-items: start; }
 .verdict .grade { font-size: 1.9em; font-weight: 700; }
 .badge { display: inline-block; padding: 0.1em 0.5em; border-radius: 4px; color: white; font-weight: 600; }
 .mild { background: #2a7d2e; } .moderate { background: #c77800; } .severe { background: #b22; }
@@ -115,8 +118,9 @@ class Case:
 
 
 # Unit suffixes of record keys and how the tables print them.
-_UNITS = (("_per_mm", "1/mm"), ("_m3s", "m³/s"), ("_mm3", "mm³"), ("_mm2", "mm²"), ("_mm", "mm"),
-          ("_deg", "°"), ("_pa", "Pa"), ("_mb", "MB"), ("_hu", "HU"), ("_s", "s"))
+_UNITS = (("_per_mm", "1/mm"), ("_m3s", "m³/s"), ("_mm3", "mm³"), ("_mm2", "mm²"), ("_mmhg", "mmHg"), ("_mm", "mm"),
+          ("_deg", "°"), ("_pa", "Pa"), ("_mb", "MB"), ("_hu", "HU"), ("_cm_s", "cm/s"), ("_ml_s", "mL/s"),
+          ("_m_s", "m/s"), ("_s", "s"))
 
 
 def readable(key: str) -> str:
@@ -320,6 +324,52 @@ def verdict_html(geometry: dict) -> str:
             f"NASCET category</p><table>{body}</table>{taper}</div>")
 
 
+def duplex_html(flow: dict) -> str:
+    """The virtual duplex of the first page (``flow/summary.json`` ``duplex``): ICA and CCA PSV and EDV, their
+    ratio, the SRU consensus grade with each criterion's category, and the pressure drop across the stenosis."""
+    duplex = flow.get("duplex") or {}
+    if "gates" not in duplex:
+        reason = duplex.get("reason", "the flow stage has not run" if not flow else "summary.json predates it")
+        return f'<div class="verdict" id="duplex"><h3>Virtual duplex</h3><p class="missing">None: {html.escape(reason)}.</p></div>'
+    ica, cca, sru, pressure = duplex["gates"]["ICA"], duplex["gates"]["CCA"], duplex["sru"], duplex["pressure"]
+    ratio = pressure["ratio_mean"]
+    rows = [("ICA PSV", f"{ica['psv_cm_s']:.0f} cm/s", sru["by_psv"]),
+            ("ICA EDV", f"{ica['edv_cm_s']:.0f} cm/s", sru["by_edv"]),
+            ("ICA/CCA PSV ratio", f"{duplex['psv_ratio']:.2f}", sru["by_ratio"]),
+            ("CCA PSV / EDV", f"{cca['psv_cm_s']:.0f} / {cca['edv_cm_s']:.0f} cm/s", ""),
+            ("pressure drop, mean / systole", f"{pressure['drop_mean_mmhg']:.1f} / "
+             f"{pressure['drop_peak_systole_mmhg']:.1f} mmHg", ""),
+            ("pressure ratio distal/proximal", "–" if ratio is None else f"{ratio:.3f} (mean)", ""),
+            ("NASCET (geometry)", f"{100 * duplex['nascet']:.1f} %", duplex["nascet_category"])]
+    body = "".join(f"<tr><th>{html.escape(k)}</th><td>{html.escape(v)}</td><td>{html.escape(c)}</td></tr>"
+                   for k, v, c in rows)
+    grade = sru["grade"]
+    badge = CATEGORY_CLASS.get(grade, "mild" if grade == "normal" else "severe")
+    where = (f"Gates (spheres of {ica['gate_radius_mm']:.2f} and {cca['gate_radius_mm']:.2f} mm on the axis): ICA "
+             f"{ica['arclength_from_bifurcation_mm']:.1f} mm distal, CCA {cca['arclength_from_bifurcation_mm']:.1f} mm "
+             "proximal to the bifurcation; SRU category of each criterion beside it. Pressures "
+             + ("absolute (lumped outlets)." if ratio is not None else "relative (prescribed split): no ratio."))
+    partial = (" Partial cycle: PSV and EDV of part of a cycle." if duplex.get("partial") else
+               " First cycle, from rest: EDV read at the cycle's end." if duplex.get("first_cycle") else "")
+    return (f'<div class="verdict" id="duplex"><h3>Virtual duplex (SRU consensus, Grant 2003)</h3>'
+            f'<p><span class="badge {badge}">{html.escape(grade)}</span> SRU grade from the ICA PSV'
+            f'{"" if sru["concordant"] else "; the criteria disagree"}</p><div class="cols"><table>{body}</table>'
+            f'<p class="missing">{html.escape(where + partial)}</p></div></div>')
+
+
+def calibration_rows(calibration: dict) -> list[tuple]:
+    """The inflow calibration table (``summary.json`` ``inflow_calibration``): targets, what the inlet and the CCA
+    gate reach, and the map ``a q + b``."""
+    gate = (calibration.get("gate_psv_cm_s"), calibration.get("gate_edv_cm_s"))
+    return [("CCA PSV (cm/s)", f"{calibration['target_psv_cm_s']:.1f}", f"{calibration['inlet_psv_cm_s']:.1f}",
+             _value(gate[0])),
+            ("CCA EDV (cm/s)", f"{calibration['target_edv_cm_s']:.1f}", f"{calibration['inlet_edv_cm_s']:.1f}",
+             _value(gate[1])),
+            ("mean flow (mL/s)", "", f"{calibration['mean_flow_ml_s']:.2f} (uncalibrated "
+             f"{calibration['uncalibrated_mean_flow_ml_s']:.2f})", ""),
+            ("map of the flow q (mL/s)", "", f"a = {calibration['a']:.3f}, b = {calibration['b_ml_s']:.2f}", "")]
+
+
 def _figure(caption: str, png: bytes, element_id: str = "") -> str:
     data = base64.b64encode(png).decode()
     ident = f' id="{element_id}"' if element_id else ""
@@ -400,8 +450,9 @@ def summary_html(case: Case) -> str:
                                                                         "failed results.</li>"
     profile = profile_figure(case)
     top = [verdict_html(case.geometry),
-           _figure("Lumen diameter along the CCA and the graded branch, with the stenosis and its references",
-                   profile, "profile") if profile else '<p class="missing">No centerlines: no diameter profile.</p>',
+           "<div>" + (_figure("Lumen diameter along the CCA and the graded branch, with the stenosis and its references",
+                              profile, "profile") if profile else
+                      '<p class="missing">No centerlines: no diameter profile.</p>') + duplex_html(case.flow) + "</div>",
            f'<div class="warnings" id="warnings"><h3>Warnings</h3><ul>{notes}</ul></div>']
     parts = [f'<div class="top">{"".join(top)}</div>']
 
@@ -476,6 +527,11 @@ def flow_summary_html(case: Case) -> list[str]:
             named[f"outflow {caps.get(int(label), label)}"] = (series["time"], series["outflow"][:, j])
         parts.append(_figure("Inflow waveform and outlet flows as computed",
                              figures.time_series(named, "time (s)", "flow (mL/s)")))
+    calibration = case.flow.get("inflow_calibration")
+    if calibration:
+        parts.append(_table_html(Table("Inflow calibrated to the measured CCA velocities (q -> a q + b on the inlet's "
+                                       "Womersley centreline velocity)", calibration_rows(calibration),
+                                       ["quantity", "measured", "inlet centreline", "CCA gate (simulated)"])))
     parts += cycle_state_html(case.flow)
     return parts
 
@@ -711,7 +767,7 @@ def flow_section(case: Case) -> Section:
         section.tables.append(Table("Per-node GCI over the wall (finest mesh)", [
             (name, _percent(m["median_gci"]), *(_percent(m[status]) for status in STATUS))
             for name, m in study["map"].items()], ["index", "median GCI (%)", *(f"{s} (% of nodes)" for s in STATUS)]))
-    shown = ("indices", "periodicity", "regions", "bifurcation_geometry")  # tabled on their own
+    shown = ("indices", "periodicity", "regions", "bifurcation_geometry", "probes")  # tabled on their own
     record = {k: v for k, v in summary.items() if k not in shown}
     record["mass_balance"] = {k: v for k, v in summary.get("mass_balance", {}).items() if k != "outlets"}
     section.tables.append(Table("Solver record", flatten(record)))
