@@ -355,6 +355,10 @@ def test_vtp_round_trip(tmp_path):
         assert np.allclose(a.points, b.points, atol=1e-5)
         assert np.allclose(a.radii, b.radii, atol=1e-6)
         assert np.allclose(a.areas, b.areas, atol=1e-6)
+        assert np.allclose(a.median_radii, b.median_radii, atol=1e-6)
+        assert np.allclose(a.narrow_radii, b.narrow_radii, atol=1e-6)
+    # Read back, the grading is the same (it uses the section profiles, not only the inscribed radius).
+    assert stenosis(back.branch("ICA")) == stenosis(cl.branch("ICA"))
     assert np.allclose(back.bifurcation, cl.bifurcation)
     assert read_centerlines(vtp).branch("ICA").points.shape == cl.branch("ICA").points.shape
     doc = json.loads(geometry.read_text())

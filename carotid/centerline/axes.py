@@ -137,11 +137,7 @@ def section_areas(levelset: Volume, points: np.ndarray, radii: np.ndarray, step:
     radii = np.asarray(radii, float)
     if len(points) < 2:
         return np.pi * radii ** 2
-    t = tangents(points)
-    helper = np.where(np.abs(t[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-    u = np.cross(t, helper)
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    v = np.cross(t, u)
+    u, v = normal_frames(points)
     disc = reach * radii + margin
     step = max(step, float(disc.max()) / 40.0)
     g = np.arange(-disc.max(), disc.max() + 0.5 * step, step)
@@ -199,11 +195,7 @@ def section_radii(levelset: Volume, points: np.ndarray, radii: np.ndarray, n_ray
     radii = np.asarray(radii, float)
     if len(points) < 2:
         return np.repeat(radii[:, None], n_rays, axis=1)
-    t = tangents(points)
-    helper = np.where(np.abs(t[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-    u = np.cross(t, helper)
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    v = np.cross(t, u)
+    u, v = normal_frames(points)
     angle = np.linspace(0.0, 2.0 * np.pi, n_rays, endpoint=False)
     ray = np.cos(angle)[None, :, None] * u[:, None] + np.sin(angle)[None, :, None] * v[:, None]  # (n, m, 3)
     step = 0.25 * float(min(levelset.spacing))
@@ -260,6 +252,17 @@ def tangents(points: np.ndarray) -> np.ndarray:
     """Unit tangents (n, 3) of a polyline by central differences (one-sided at the ends)."""
     t = np.gradient(points, axis=0)
     return t / np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+
+
+def normal_frames(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors (n, 3) each spanning, with the other, the plane normal to a polyline (n, 3) at each
+    point: ``u`` orthogonal to the tangent and to the x axis (the y axis where the tangent is near x), and
+    ``v = t x u``."""
+    t = tangents(points)
+    helper = np.where(np.abs(t[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    u = np.cross(t, helper)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    return u, np.cross(t, u)
 
 
 def recentre(wall: WallDistance, points: np.ndarray, max_shift: float, tol: float = 0.01) -> np.ndarray:
