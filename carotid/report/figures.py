@@ -328,7 +328,7 @@ def histogram(values: dict[str, np.ndarray], xlabel: str, bins=40, title: str = 
     return _png(fig)
 
 
-def diameter_profile(s: np.ndarray, diameter: np.ndarray, section: np.ndarray | None, stenosis: dict | None,
+def diameter_profile(s: np.ndarray, narrow: np.ndarray, median: np.ndarray, stenosis: dict | None,
                      xlabel: str) -> bytes:
     """Lumen diameter along a vessel axis, with the stenosis and its reference diameters marked.
 
@@ -336,10 +336,10 @@ def diameter_profile(s: np.ndarray, diameter: np.ndarray, section: np.ndarray | 
     ----------
     s : ndarray, shape (n,)
         Arc length, mm (0 at the bifurcation).
-    diameter : ndarray, shape (n,)
-        Twice the maximal inscribed sphere radius, mm.
-    section : ndarray, shape (n,), optional
-        Diameter of the circle with the section's area, mm.
+    narrow, median : ndarray, shape (n,)
+        The two diameters the stenosis is graded on (``carotid.centerline.features.grading_profiles``): twice
+        the narrowest half-width of each section (the residual lumen) and twice its median radius (the
+        vessel), mm.
     stenosis : dict, optional
         ``geometry.json``'s stenosis: ``arclength_from_bifurcation_mm``, ``min_diameter_mm``,
         ``distal_diameter_mm`` (NASCET reference), ``local_diameter_mm`` (ECST reference).
@@ -348,9 +348,8 @@ def diameter_profile(s: np.ndarray, diameter: np.ndarray, section: np.ndarray | 
     """
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(8.4, 3.3))
-    ax.plot(s, diameter, color="C0", label="inscribed-sphere diameter")
-    if section is not None:
-        ax.plot(s, section, color="C0", alpha=0.45, linestyle="--", label="area-equivalent diameter")
+    ax.plot(s, narrow, color="C0", label="narrowest width (graded lumen)")
+    ax.plot(s, median, color="C0", alpha=0.45, linestyle="--", label="median diameter (graded vessel)")
     ax.axvline(0.0, color="0.5", linewidth=0.8)
     ax.annotate("bifurcation", (0.0, 1.0), xycoords=("data", "axes fraction"), xytext=(3, -12),
                 textcoords="offset points", fontsize=8, color="0.4")

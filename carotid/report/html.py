@@ -398,6 +398,7 @@ def profile_figure(case: Case) -> bytes | None:
     """The diameter profile along the CCA and the graded branch, or None without centerlines."""
     from carotid.centerline import read_centerlines
     from carotid.centerline.axes import arclength
+    from carotid.centerline.features import grading_profiles
 
     if not (case.dir / "centerlines.vtp").exists():
         return None
@@ -412,16 +413,13 @@ def profile_figure(case: Case) -> bytes | None:
         cca = branches["CCA"]
         parts.insert(0, (arclength(cca.points) - arclength(cca.points)[-1], cca))
     s = np.concatenate([p[0] for p in parts])
-    diameter = 2.0 * np.concatenate([p[1].radii for p in parts])
-    section = None
-    if all(p[1].areas is not None for p in parts):
-        section = 2.0 * np.sqrt(np.concatenate([p[1].areas for p in parts]) / np.pi)
+    narrow, median = (2.0 * np.concatenate(profile) for profile in zip(*(grading_profiles(p[1]) for p in parts)))
     if name == "CCA":
         s = s - s[-1]
         grade = dict(grade, arclength_from_bifurcation_mm=-grade["arclength_from_bifurcation_mm"])
     label = "distance from the bifurcation (mm): CCA < 0 < " + name if name != "CCA" else \
         "distance from the bifurcation along the CCA (mm)"
-    return figures.diameter_profile(s, diameter, section, grade, label)
+    return figures.diameter_profile(s, narrow, median, grade, label)
 
 
 def case_warnings(case: Case) -> list[str]:
