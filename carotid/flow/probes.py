@@ -263,11 +263,16 @@ class ProbeRecorder:
         self.times: list[float] = []
         self.values: list[np.ndarray] = []
 
-    def record(self, t: float, u: np.ndarray, p: np.ndarray, force: bool = False) -> None:
-        """Sample at time ``t`` (s) if due (or ``force``): ``u`` (n, 3) m/s, ``p`` (n,) Pa."""
+    def due(self, t: float, force: bool = False) -> bool:
+        """Whether a sample at time ``t`` (s) is kept: after the last one, and an output step (``force``) or at
+        least one sampling interval after it."""
         if self.times and t <= self.times[-1]:
-            return
-        if force or not self.times or t - self.times[-1] >= self.interval * (1 - 1e-9):
+            return False
+        return force or not self.times or t - self.times[-1] >= self.interval * (1 - 1e-9)
+
+    def record(self, t: float, u: np.ndarray, p: np.ndarray, force: bool = False) -> None:
+        """Sample at time ``t`` (s) if :meth:`due`: ``u`` (n, 3) m/s, ``p`` (n,) Pa."""
+        if self.due(t, force):
             self.times.append(float(t))
             self.values.append(self.probes.sample(u, p))
 

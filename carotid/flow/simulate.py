@@ -449,7 +449,8 @@ def _run_steps(solver: CBSSolver, writer: FlowWriter, wall: WallShear, params: F
                                "(try a smaller --dt or a finer mesh)")
         cycle_end = solver.t >= boundary * (1 - 1e-12)
         output = solver.step_count % params.output_every == 0 or cycle_end or solver.t >= t_end * (1 - 1e-12)
-        recorder.record(solver.t, solver.u, solver.pressure_pa(params.rho), force=output)
+        if recorder.due(solver.t, force=output):  # the pressure in Pa only for a sample that is kept
+            recorder.record(solver.t, solver.u, solver.pressure_pa(params.rho), force=True)
         if output:
             _output(writer, solver, wall, params, _diagnostics(solver, info, params.rho))
         if cycle_end:
