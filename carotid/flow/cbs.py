@@ -271,6 +271,13 @@ class CBSSolver:
         ``pressure(x, t) -> (k,)`` (kinematic, m^2/s^2) at points ``x`` (k, 3) in m: its velocity is imposed on
         the whole boundary and its pressure on the outlet nodes (``inlet_speed`` and ``split`` are then not
         used; give ``velocity_scale``).
+
+    Attributes
+    ----------
+    passed : ndarray, shape (1 + outlets,)
+        Volume that has entered through the inlet and left through each outlet (``int u.n`` of the P1
+        velocity) since t = 0, m^3: the flows at the end of each step times its length, so a window's flow
+        shares are ratios of volumes, not means of instantaneous ratios.
     """
 
     VISCOUS = ("explicit", "implicit")
@@ -486,6 +493,7 @@ class CBSSolver:
         self.u = np.zeros((n, 3)) if u0 is None else np.array(u0, dtype=float)
         self.p = np.zeros(n)
         self._p0_free = np.zeros(len(self.free))
+        self.passed = np.zeros(1 + len(self.outlets))
         if self.lumped is not None:
             self.lumped.pc = self._pc0.copy()
         self.nut_hat = None if self.turbulence is None else self.turbulence.initial(n)
@@ -497,7 +505,8 @@ class CBSSolver:
 
     def state(self) -> dict:
         """Every array and scalar needed to continue the run bit for bit (for checkpoints)."""
-        st = {"u": self.u, "p": self.p, "p0_free": self._p0_free, "t": self.t, "step": self.step_count}
+        st = {"u": self.u, "p": self.p, "p0_free": self._p0_free, "t": self.t, "step": self.step_count,
+              "passed": self.passed.copy()}
         if self.lumped is not None:
             st["outlet_pc"] = self.lumped.pc.copy()
         if self.nut_hat is not None:
@@ -514,6 +523,7 @@ class CBSSolver:
         self.p = np.array(st["p"], dtype=float)
         self._p0_free = np.array(st["p0_free"], dtype=float)
         self.t, self.step_count = float(st["t"]), int(st["step"])
+        self.passed = np.array(st["passed"], dtype=float)
         if self.lumped is not None:
             self.lumped.pc = np.array(st["outlet_pc"], dtype=float)
         if self.turbulence is not None:
@@ -631,7 +641,9 @@ class CBSSolver:
         outflow = q0 + self.flux_response @ c
         if self.lumped is not None:
             self.lumped.advance(outflow, dt)
-        return StepInfo(dt, cfl, self.inflow(u), outflow, self.outflows(u), self.pressure.iterations)
+        info = StepInfo(dt, cfl, self.inflow(u), outflow, self.outflows(u), self.pressure.iterations)
+        self.passed += dt * np.r_[info.inflow, info.outflow_p1]
+        return info
 
     def _backflow_traction(self, resid: np.ndarray) -> None:
         """Add ``int_outlets N_i beta min(u.n, 0) u dS`` (lumped) to the momentum residual ``resid`` (n, 3)."""

@@ -37,9 +37,10 @@ from carotid.flow.wss import WallShear
 from carotid.io import write_json
 
 
-# Version of what a checkpoint stores (its output records carry per-outlet P1 fluxes from version 2): a
-# checkpoint of another version does not match the fingerprint, so a run starts afresh instead of resuming.
-CHECKPOINT_FORMAT = 2
+# Version of what a checkpoint stores (its output records carry per-outlet P1 fluxes from version 2, the volumes
+# passed since t = 0 from version 3): a checkpoint of another version does not match the fingerprint, so a run
+# starts afresh instead of resuming.
+CHECKPOINT_FORMAT = 3
 
 
 @dataclass
@@ -312,8 +313,20 @@ def _diagnostics(solver: CBSSolver, info, rho: float) -> dict:
              for nj, wj in solver.out_flux]
     return {"dt": info.dt, "cfl": info.cfl, "inflow": info.inflow, "outflow": info.outflow.tolist(),
             "outflow_p1": info.outflow_p1.tolist(), "imbalance": info.imbalance, "imbalance_p1": info.imbalance_p1,
-            "dp": p_in - float(np.average(p_out, weights=solver.outlet_areas)), "inlet_pressure": p_in,
-            "outlet_pressure": p_out}
+            "passed_m3": solver.passed.tolist(), "dp": p_in - float(np.average(p_out, weights=solver.outlet_areas)),
+            "inlet_pressure": p_in, "outlet_pressure": p_out}
+
+
+def outlet_shares(records: list[dict], t0: float, t1: float) -> np.ndarray:
+    """Share of the inflow volume that left through each outlet between the output records at ``t0`` and ``t1``
+    (s; the first record at or after each), from the volumes passed (:attr:`CBSSolver.passed`), shape
+    (outlets,): the share of the mean flow over the window, not the mean of the instantaneous shares, which
+    over-weights the diastole's small flows and the short steps of the systole."""
+    def passed(t: float) -> np.ndarray:
+        return np.array(next(r for r in records if r["time"] >= t * (1 - 1e-12) - 1e-15)["diagnostics"]["passed_m3"])
+
+    volume = passed(t1) - passed(t0)
+    return volume[1:] / volume[0] if volume[0] > 0 else np.full(len(volume) - 1, np.nan)
 
 
 # The solver's BLAS calls are vector-sized (CG dot products and updates on the nodes): a second BLAS thread
@@ -383,7 +396,7 @@ def simulate(mesh, case_dir, params: FlowParameters | None = None, resume: bool 
         _output(writer, solver, wall, params, {"dt": 0.0, "cfl": 0.0, "inflow": solver.inflow(solver.u),
                                                "outflow": solver.outflows(solver.u).tolist(),
                                                "outflow_p1": solver.outflows(solver.u).tolist(), "imbalance": 0.0,
-                                               "imbalance_p1": 0.0,
+                                               "imbalance_p1": 0.0, "passed_m3": solver.passed.tolist(),
                                                "dp": 0.0})
         recorder.record(solver.t, solver.u, solver.pressure_pa(params.rho), force=True)
         _checkpoint(ckpt, solver, writer, fp, seconds, recorder)
@@ -500,6 +513,9 @@ class CyclePeriodicity:
       criterion of ``periodic_tol``, and
     * the relative change of the area-weighted mean TAWSS, ``|mean_k - mean_{k-1}| / mean_k``,
 
+    beside the cycle's share of the inflow volume through each outlet (:func:`outlet_shares`), which with
+    lumped outlets settles over the cycles as their compliances charge,
+
     A_i the wall area of node i (:func:`carotid.flow.indices.node_areas`).  The entries are rebuilt from the
     outputs, so a resumed run has the same ones.
 
@@ -531,7 +547,9 @@ class CyclePeriodicity:
             keep = times <= k * self.period * (1 + 1e-12)
             tawss = wall_indices(times[keep], wss[keep], self.normals)["TAWSS"]
             mean = float(self.areas @ tawss / self.areas.sum())
-            entry = {"cycle": k, "tawss_mean_pa": mean, "relative_change": None, "mean_change": None}
+            share = outlet_shares(self.writer.records, (k - 1) * self.period, k * self.period)
+            entry = {"cycle": k, "tawss_mean_pa": mean, "relative_change": None, "mean_change": None,
+                     "outlet_share": share.tolist()}
             if self._tawss is not None:
                 previous = float(self.areas @ self._tawss / self.areas.sum())
                 entry["relative_change"] = float(np.sqrt(self.areas @ (tawss - self._tawss) ** 2 /
@@ -594,8 +612,8 @@ def _finish(flow_dir, mesh, solver, wall, writer, params, waveform, seconds, per
     recs = [r for r in writer.records if r["time"] >= since - 1e-12 and r["step"] > 0]
     diag = [r["diagnostics"] for r in recs]
     inflow = np.array([d["inflow"] for d in diag])
-    outflow = np.array([d["outflow_p1"] for d in diag])  # int u.n of the P1 velocity
-    frac = outflow / inflow[:, None]
+    frac = np.array([d["outflow_p1"] for d in diag]) / inflow[:, None]  # int u.n of the P1 velocity
+    share = outlet_shares(writer.records, since, solver.t)
     consistent = np.array([d["outflow"] for d in diag])
     labels = mesh.outlet_labels
     mag = np.linalg.norm(wss[-1], axis=1) if len(wss) else np.zeros(1)
@@ -615,11 +633,13 @@ def _finish(flow_dir, mesh, solver, wall, writer, params, waveform, seconds, per
                     "pressure-stabilisation flux through the element layer at each outlet (sum_e tau_e "
                     "int grad N . (grad p - P grad p), largest where the pressure gradient is not linear there: "
                     "coarse outlet layers, flow not developed at the outlet) and by the pressure solver's "
-                    "tolerance.  imbalance_max_abs and consistent_fraction_of_inflow_mean are the consistent "
+                    "tolerance.  fraction_of_inflow_mean is the outlet's share of the inflow volume over the window "
+                    "of the indices (the share of the mean flow).  imbalance_max_abs and "
+                    "consistent_fraction_of_inflow_mean are the consistent "
                     "fluxes (the continuity residual at the outlet nodes), on which the scheme imposes the "
                     "balance and the split: zero and the target by construction, not a check",
             "outlets": {str(lab): {"target_fraction": float(solver.split[j]),
-                                   "fraction_of_inflow_mean": float(frac[:, j].mean()),
+                                   "fraction_of_inflow_mean": float(share[j]),
                                    "error_max": None if solver.lumped is not None else
                                    float(np.max(np.abs(frac[:, j] - solver.split[j]))),
                                    "consistent_fraction_of_inflow_mean": float(np.mean(consistent[:, j] / inflow))}
