@@ -10,9 +10,11 @@ The scripts import this module as ``_common``; they are run as
 from __future__ import annotations
 
 import argparse
+import hashlib
 import os
 import platform
 import resource
+import subprocess
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -27,7 +29,8 @@ import SimpleITK as sitk
 
 from carotid.io import Volume, to_sitk, write_json
 
-RESULTS_DIR = Path(__file__).resolve().parent / "results"
+REPO = Path(__file__).resolve().parent.parent
+RESULTS_DIR = REPO / "benchmarks" / "results"
 PACKAGES = ("numpy", "scipy", "SimpleITK", "numba", "scikit-image", "carotid")
 
 
@@ -152,6 +155,28 @@ def _jsonable(value):
     return value
 
 
+def git_state() -> dict:
+    """The code a benchmark runs: HEAD, its branch, whether the working tree differs from it (the changed
+    paths), a hash of the tracked diff and a hash of every ``carotid/**/*.py`` (untracked ones too).
+
+    Returns
+    -------
+    dict
+        ``commit``, ``branch``, ``dirty``, ``changed``, ``tracked_diff_sha1``, ``carotid_sources_sha1``.
+    """
+    def git(*args):
+        return subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True).stdout
+
+    status = [line for line in git("status", "--porcelain").splitlines() if line.strip()]
+    sources = hashlib.sha1()
+    for path in sorted((REPO / "carotid").rglob("*.py")):
+        sources.update(str(path.relative_to(REPO)).encode() + b"\0" + path.read_bytes())
+    return {"commit": git("rev-parse", "HEAD").strip(), "branch": git("rev-parse", "--abbrev-ref", "HEAD").strip(),
+            "dirty": bool(status), "changed": status,
+            "tracked_diff_sha1": hashlib.sha1(git("diff", "HEAD").encode()).hexdigest(),
+            "carotid_sources_sha1": sources.hexdigest()}
+
+
 def write_results(name: str, figures: dict, quick: bool = False) -> Path:
     """Write ``results/NAME.json`` (``NAME_quick.json`` for a smoke run).
 
@@ -160,7 +185,8 @@ def write_results(name: str, figures: dict, quick: bool = False) -> Path:
     name : str
         Benchmark name, for instance ``"potential"``.
     figures : dict
-        The measurements (numpy values are converted).
+        The measurements (numpy values are converted); a ``git`` entry (:func:`git_state` taken when the
+        run started) stands for the state at writing, which is recorded otherwise.
     quick : bool
         Whether this was a ``--quick`` run.
 
@@ -177,6 +203,7 @@ def write_results(name: str, figures: dict, quick: bool = False) -> Path:
         "command": " ".join([Path(sys.executable).name, *sys.argv]),
         "quick": quick,
         "machine": machine_info(),
+        "git": git_state(),
         **figures,
     }
     write_json(_jsonable(document), path)

@@ -52,10 +52,8 @@ Usage (from the repository root)::
 
 from __future__ import annotations
 
-import hashlib
 import math
 import os
-import subprocess
 import tempfile
 import time
 import warnings
@@ -63,7 +61,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _common import parse_args, run_isolated, write_results
+from _common import git_state, parse_args, run_isolated, write_results
 
 REPO = Path(__file__).resolve().parents[1]
 SURFACE = REPO.parent / "shared/data/carotid-surface-sphinxsys/fluid.stl"
@@ -317,19 +315,6 @@ def compare(source: str, edge: float, tmp: str) -> dict:
             "core_fraction_ge_20deg_ge_gmsh": ro["core_min_dihedral"]["fraction_ge_20deg"]
             >= rt["core_min_dihedral"]["fraction_ge_20deg"]})
     return {"surface": surface, "thickness_mm": thickness, "size_mm": size, "runs": runs, "targets": targets}
-
-
-def git_state() -> dict:
-    """HEAD, whether the working tree differs from it (the changed paths) and a hash of ``carotid/mesh/*.py``."""
-    def git(*args):
-        return subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True).stdout
-
-    status = [line for line in git("status", "--porcelain").splitlines() if line.strip()]
-    sources = hashlib.sha1()
-    for path in sorted((REPO / "carotid" / "mesh").glob("*.py")):
-        sources.update(path.name.encode() + b"\0" + path.read_bytes())
-    return {"commit": git("rev-parse", "HEAD").strip(), "dirty": bool(status), "changed": status,
-            "carotid_mesh_sha1": sources.hexdigest()}
 
 
 def main() -> None:

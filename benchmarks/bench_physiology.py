@@ -44,15 +44,13 @@ import json
 import os
 import shutil
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-from _common import parse_args, write_results
+from _common import git_state, parse_args, write_results
 
-REPO = Path(__file__).resolve().parent.parent
 VARIANTS = (("newtonian", "murray"), ("carreau", "murray"), ("newtonian", "rcr"), ("carreau", "rcr"))
 REFERENCE = VARIANTS[0]
 TARGET_RATIO = 1.5
@@ -63,16 +61,6 @@ CYCLES = 3.0               # whole cycles of the low-TAWSS comparison; indices o
 SIM = {"output_every": 50, "checkpoint_every": 500}   # the demo's
 REGIONS = ("CCA", "bulb", "ICA", "ECA", "stenosis", "other", "whole wall")
 LOW_TAWSS_PA = 0.4
-
-
-def git_state() -> dict:
-    """HEAD and whether the working tree differs from it (the changed paths)."""
-    def git(*args):
-        return subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True).stdout
-
-    status = [line for line in git("status", "--porcelain").splitlines() if line.strip()]
-    return {"commit": git("rev-parse", "HEAD").strip(), "branch": git("rev-parse", "--abbrev-ref", "HEAD").strip(),
-            "dirty": bool(status), "changed": status}
 
 
 def build_case(folder: Path) -> dict:

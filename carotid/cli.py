@@ -24,16 +24,16 @@ STAGE_COMMANDS = ("carotid.centerline.command", "carotid.surface.command", "caro
 
 
 def _progress_bar(label: str):
-    """A tqdm bar on stderr (silent when stderr is not a terminal) and its level-set callback."""
-    from tqdm import tqdm
+    """The progress report on stderr (:class:`carotid.pipeline.StageProgress`: a bar on a terminal, a line every
+    few seconds elsewhere) and its level-set callback."""
+    from carotid.pipeline import StageProgress
 
-    bar = tqdm(desc=label, unit="it", file=sys.stderr, disable=None, dynamic_ncols=True)
+    report = StageProgress(label, sys.stderr)
 
     def update(iterations: int, changed: int, front: int) -> None:
-        bar.update(iterations - bar.n)
-        bar.set_postfix(front=front, changed=changed, refresh=False)
+        report(iterations, None, iterations=iterations, front=front, changed=changed)
 
-    return bar, update
+    return report, update
 
 
 def _segment_parameters(args):

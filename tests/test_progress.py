@@ -107,3 +107,22 @@ def test_interrupted_simulation_resumes_where_it_stopped(piped_run, tmp_path, mo
         assert np.abs(done[field] - uninterrupted[field]).max() <= 1e-10 * scale, field
     assert _files(case / "flow") == _files(reference / "flow")
     assert [str(p.relative_to(case)) for p in case.rglob(".*")] == []
+
+
+def test_single_stage_simulate_reports_when_piped(piped_run, tmp_path):
+    """``carotid simulate CASE`` with its output piped (a batch job's log) shows its progress lines, not only its
+    result at the end: a tqdm bar alone is silent there."""
+    _, reference, _, code = piped_run
+    assert code == 0
+    case = tmp_path / "case"
+    case.mkdir()
+    for name in ("mesh.vtu", "centerlines.vtp", "geometry.json"):
+        shutil.copy(reference / name, case / name)
+    start = time.monotonic()
+    proc = subprocess.run([sys.executable, "-m", "carotid", "simulate", str(case), "--cycles", "0.25"],
+                          capture_output=True, text=True, timeout=600)
+    seconds = time.monotonic() - start
+    assert proc.returncode == 0, proc.stderr
+    periodic = [line for line in proc.stderr.splitlines() if re.match(r"simulate: \d+% after .*, ETA .*; step=\d+",
+                                                                        line)]
+    assert seconds > 3 * 5.0 and len(periodic) >= 2, proc.stderr  # PROGRESS_SECONDS = 5

@@ -20,10 +20,9 @@ def _split(values: list[str] | None) -> tuple | None:
 
 
 def cmd_simulate(args) -> int:
-    from tqdm import tqdm
-
     from carotid.flow.mesh import FlowMesh
     from carotid.flow.simulate import simulate
+    from carotid.pipeline import StageProgress
     from carotid.stages import FlowStageParameters
 
     case = Path(args.case_dir)
@@ -46,23 +45,14 @@ def cmd_simulate(args) -> int:
                                 doppler_cca_edv=args.doppler_cca[1] if args.doppler_cca else 0.0)
     params = stage.validate().flow_parameters()
     mesh = FlowMesh.from_vtu(case / "mesh.vtu")
-    bar = tqdm(total=1.0, unit="cycle", file=sys.stderr, disable=None, dynamic_ncols=True,
-               bar_format="{l_bar}{bar}| {postfix}")
-
-    def progress(info: dict) -> None:
-        bar.n = info["time"] / info["end"]
-        bar.set_postfix_str(f"cycle {info['cycle']:.3f} t={info['time']:.4f}s CFL={info['cfl']:.2f} "
-                            f"imbalance={100 * info['imbalance']:+.3f}%", refresh=False)
-        if info["step"] % 20 == 0:
-            bar.refresh()
-
     if args.convergence:
-        return _convergence(case, params, args, bar)
-    try:
-        summary = simulate(mesh, case, params, resume=args.resume, progress=progress,
-                           log=lambda line: bar.write(f"simulate: {line}", file=sys.stderr))
-    finally:
-        bar.close()
+        return _convergence(case, params, args)
+    with StageProgress("simulate", sys.stderr) as report:
+        def progress(info: dict) -> None:
+            report(info["time"], info["end"], step=info["step"], cycle=f"{info['cycle']:.3f}",
+                   CFL=f"{info['cfl']:.2f}", imbalance=f"{100 * info['imbalance']:+.3f}%")
+
+        summary = simulate(mesh, case, params, resume=args.resume, progress=progress, log=report.write)
     mb = summary["mass_balance"]
     print(f"flow written to {case / 'flow'}: {summary['steps']} steps, {summary['seconds']:.0f} s, "
           f"max CFL {summary['cfl_max']:.2f}, max mass imbalance (P1 flux) {100 * mb['imbalance_p1_max_abs']:.3f}%, "
@@ -86,20 +76,17 @@ def cmd_simulate(args) -> int:
     return 0
 
 
-def _convergence(case: Path, params, args, bar) -> int:
+def _convergence(case: Path, params, args) -> int:
     """``--convergence``: the study of :func:`carotid.flow.convergence.run_convergence`, printed."""
     from carotid.flow.convergence import run_convergence
+    from carotid.pipeline import StageProgress
 
-    def progress(info: dict) -> None:
-        bar.n = info["fraction"]
-        bar.set_postfix_str(" ".join(f"{name} {100 * f:.0f}%" for name, f in info["runs"].items()), refresh=True)
+    with StageProgress("convergence", sys.stderr) as report:
+        def progress(info: dict) -> None:
+            report(info["fraction"], 1.0, **{name: f"{100 * f:.0f}%" for name, f in info["runs"].items()})
 
-    try:
         result = run_convergence(case, params, args.refinement, time_levels=args.time_levels, workers=args.workers,
-                                 case_mesh=args.case_mesh, progress=progress,
-                                 log=lambda line: bar.write(f"convergence: {line}", file=sys.stderr))
-    finally:
-        bar.close()
+                                 case_mesh=args.case_mesh, progress=progress, log=report.write)
     sizes = ", ".join(f"{level['h_mm']:.3f}" for level in result["levels"])
     finest = "the case mesh" if args.case_mesh else f"the case mesh coarsened by {args.refinement:g}"
     print(f"convergence study written to {case / 'flow' / 'convergence.json'} in {result['seconds'] / 60:.1f} min; "
