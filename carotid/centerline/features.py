@@ -255,9 +255,12 @@ def bifurcation_geometry(cl: Centerlines) -> dict | None:
     centerlines (VMTK-style, maximal inscribed sphere radii) in units of the CCA radius from the bifurcation
     point.  The offsets are this function's own choice, stated here; the papers' landmarks differ in detail, so
     values compare exactly between cases of this package and approximately with the published ones.  With s the
-    arc length from the bifurcation point along each branch (upstream along the CCA), r(s) the maximal
-    inscribed sphere radius and A(s) the lumen section area normal to the axis (``Branch.areas``, or pi r^2
-    when the centerlines carry none):
+    arc length from the bifurcation point along each branch (upstream along the CCA), r(s) the median section
+    radius (the median of the ray lengths to the wall in the normal plane, the radius the stenosis grading
+    takes for the vessel's size, :func:`grading_profiles`; the maximal inscribed sphere radius when the
+    centerlines carry no section profile), which a rough segmented wall does not bias the way it biases the
+    inscribed sphere, and A(s) the lumen section area normal to the axis (``Branch.areas``, or pi r^2 when the
+    centerlines carry none):
 
     * R, the CCA radius: the median of r over s in [2, 6] rho, 1 to 3 diameters below the bifurcation
       point, with rho the median r of the whole CCA (the first pass that places the window).  D_CCA = 2 R;
@@ -272,8 +275,8 @@ def bifurcation_geometry(cl: Centerlines) -> dict | None:
     * A_ICA, A_ECA: the median of A over s from 4 R (2 CCA diameters, ``DAUGHTER_START``) to one end radius
       before the branch's end; ICA/CCA area ratio A_ICA / A_CCA; bifurcation area ratio
       (A_ICA + A_ECA) / A_CCA.  Their diameters are twice the median of r over the same stretch.
-    * Bulb: the maximum ICA diameter 2 max r over s in [1, 6] R (``BULB_WINDOW``; the inscribed sphere
-      at the bifurcation point itself spans the junction), and its ratio to D_CCA.  The bulb ends where,
+    * Bulb: the maximum ICA diameter 2 max r over s in [1, 6] R (``BULB_WINDOW``; the section at the
+      bifurcation point itself spans the junction), and its ratio to D_CCA.  The bulb ends where,
       past that widest section, the ICA's original radius (:func:`local_healthy_radius`, which bridges a
       stenosis in the bulb) falls to (1 + ``BULB_EXCESS``) times the ICA's reference radius (the median r
       of its reference stretch above); 0 when the widest section does not exceed that.
@@ -306,28 +309,29 @@ def bifurcation_geometry(cl: Centerlines) -> dict | None:
     def area(branch: Branch) -> np.ndarray:
         return branch.areas if branch.areas is not None else np.pi * branch.radii ** 2
 
+    radii = {b.name: grading_profiles(b)[1] for b in (cca, ica, eca)}  # median section radius r(s)
     try:
-        rho = float(np.median(cca.radii))
+        rho = float(np.median(radii["CCA"]))
         first = _window(s_cca, CCA_WINDOW[0] * rho, CCA_WINDOW[1] * rho)
-        radius = float(np.median(cca.radii[first]))
+        radius = float(np.median(radii["CCA"][first]))
         in_cca = _window(s_cca, CCA_WINDOW[0] * radius, CCA_WINDOW[1] * radius)
         directions, reference = {}, {}
         for b, s in ((ica, s_ica), (eca, s_eca)):
             window = _window(s, DIRECTION_WINDOW[0] * radius, DIRECTION_WINDOW[1] * radius)
             directions[b.name] = _direction(b.points[window], b.points[0])
-            reference[b.name] = _window(s, DAUGHTER_START * radius, s[-1] - b.radii[-1])
+            reference[b.name] = _window(s, DAUGHTER_START * radius, s[-1] - radii[b.name][-1])
         in_bulb = _window(s_ica, BULB_WINDOW[0] * radius, BULB_WINDOW[1] * radius)
     except ValueError as exc:
         return {"reason": str(exc)}
     directions["CCA"] = _direction(cca.points[in_cca], cca.points[-1])
     a_cca = float(np.median(area(cca)[in_cca]))
     a_ica, a_eca = (float(np.median(area(b)[reference[b.name]])) for b in (ica, eca))
-    r_ica = float(np.median(ica.radii[reference["ICA"]]))
-    widest = int(in_bulb[np.argmax(ica.radii[in_bulb])])
+    r_ica = float(np.median(radii["ICA"][reference["ICA"]]))
+    widest = int(in_bulb[np.argmax(radii["ICA"][in_bulb])])
     bulb_end = 0.0
     threshold = (1.0 + BULB_EXCESS) * r_ica
-    profile = healthy_profile(ica)
-    if ica.radii[widest] > threshold and profile is not None:
+    profile = healthy_profile(ica, radii["ICA"])
+    if radii["ICA"][widest] > threshold and profile is not None:
         s, valid, healthy = profile
         fallen = valid[(valid > widest) & (healthy <= threshold)]
         bulb_end = float(s[fallen[0]] if len(fallen) else s[valid[-1]])
@@ -339,13 +343,13 @@ def bifurcation_geometry(cl: Centerlines) -> dict | None:
     return {
         "cca_diameter_mm": 2.0 * radius, "cca_area_mm2": a_cca,
         "ica_diameter_mm": 2.0 * r_ica, "ica_area_mm2": a_ica,
-        "eca_diameter_mm": 2.0 * float(np.median(eca.radii[reference["ECA"]])), "eca_area_mm2": a_eca,
+        "eca_diameter_mm": 2.0 * float(np.median(radii["ECA"][reference["ECA"]])), "eca_area_mm2": a_eca,
         "ica_cca_area_ratio": a_ica / a_cca, "bifurcation_area_ratio": (a_ica + a_eca) / a_cca,
         "bifurcation_angle_deg": _angle_deg(directions["ICA"], directions["ECA"]),
         "ica_angle_deg": _angle_deg(directions["ICA"], -directions["CCA"]),
         "eca_angle_deg": _angle_deg(directions["ECA"], -directions["CCA"]),
-        "bulb_max_diameter_mm": 2.0 * float(ica.radii[widest]),
-        "bulb_diameter_ratio": float(ica.radii[widest]) / radius,
+        "bulb_max_diameter_mm": 2.0 * float(radii["ICA"][widest]),
+        "bulb_diameter_ratio": float(radii["ICA"][widest]) / radius,
         "bulb_end_mm": bulb_end,
         "branches": {b.name: {"tortuosity": branch_features(b)["tortuosity"], "planarity_deg": planarity[b.name]}
                      for b in (cca, ica, eca)},

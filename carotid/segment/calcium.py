@@ -172,6 +172,16 @@ def structure_regions(image: np.ndarray, smooth: np.ndarray, hot: np.ndarray, ne
     return watershed(gradient, markers, mask=near).astype(np.int8)
 
 
+def label_maximum(values: np.ndarray, labels: np.ndarray, n: int) -> np.ndarray:
+    """Largest of ``values`` (k,) over each label 1..n of ``labels`` (k,), shape (n,); -inf for an absent label.
+
+    ``ndimage.maximum`` gives the same but sorts the whole array it is given; this scatters, so a caller
+    passes only the labelled voxels (a few thousand of a 256^3 image: 7 s -> milliseconds)."""
+    out = np.full(n + 1, -np.inf)
+    np.maximum.at(out, labels, values)
+    return out[1:]
+
+
 def structure_blur(image: np.ndarray, labels: np.ndarray, n: int, fraction: np.ndarray, owner: np.ndarray,
                    background: float, spacing_kji, blur_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """Blur the structures spread into their surroundings: ``sum_i a_i G * chi_i`` (image units).
@@ -209,9 +219,9 @@ def structure_blur(image: np.ndarray, labels: np.ndarray, n: int, fraction: np.n
     amplitude = np.asarray(ndimage.sum(kernel * excess, fit, index), float) / np.maximum(
         np.asarray(ndimage.sum(kernel * kernel, fit, index), float), 1e-6)
     # The blurred structure cannot be brighter than it is: at most its own excess where it is most itself.
-    peak = np.asarray(ndimage.maximum(excess, labels, index), float)
-    amplitude = np.clip(amplitude, 0.0, peak / np.maximum(np.asarray(ndimage.maximum(kernel, labels, index), float),
-                                                          0.5))
+    inside = labels > 0
+    peak, reach = (label_maximum(v[inside], labels[inside], n) for v in (excess, kernel))
+    amplitude = np.clip(amplitude, 0.0, peak / np.maximum(reach, 0.5))
     values = np.concatenate([[0.0], amplitude]).astype(np.float32)[labels] * fraction
     return ndimage.gaussian_filter(values, sigma), amplitude
 

@@ -406,6 +406,23 @@ def wide_gaussian(array: np.ndarray, sigma, voxels_per_step: float = 3.0) -> np.
     blocks = padded.reshape(coarse_shape[0], factor[0], coarse_shape[1], factor[1], coarse_shape[2], factor[2])
     coarse = blocks.mean(axis=(1, 3, 5), dtype=np.float32)
     coarse_sigma = np.sqrt(np.maximum(sigma ** 2 - (factor ** 2 - 1) / 12.0, 0.0)) / factor
-    coarse = ndimage.gaussian_filter(coarse, coarse_sigma, mode="nearest")
-    fine = ndimage.zoom(coarse, factor, order=1, mode="nearest", grid_mode=True)
-    return fine[:shape[0], :shape[1], :shape[2]].astype(np.float32, copy=False)
+    fine = ndimage.gaussian_filter(coarse, coarse_sigma, mode="nearest")
+    for axis in range(3):
+        fine = _upsample_linear(fine, axis, int(factor[axis]), int(shape[axis]))
+    return fine
+
+
+def _upsample_linear(array: np.ndarray, axis: int, factor: int, size: int) -> np.ndarray:
+    """Linear interpolation of block values to the first ``size`` voxels of blocks of ``factor`` along ``axis``.
+
+    Voxel ``o`` lies at block coordinate ``(o + 0.5) / factor - 0.5`` (block-aligned: ``ndimage.zoom`` with
+    ``grid_mode=True``); beyond the first and last block centre the value is held (``mode="nearest"``).  One
+    axis at a time, so the full-size array is formed once instead of interpolating eight corners per voxel.
+    """
+    n = array.shape[axis]
+    if factor == 1 or n == 1:
+        return np.repeat(array, factor, axis=axis).take(np.arange(size), axis=axis) if factor > 1 else array
+    c = np.clip((np.arange(size) + 0.5) / factor - 0.5, 0.0, n - 1)
+    low = np.minimum(c.astype(int), n - 2)
+    w = np.expand_dims((c - low).astype(np.float32), [a for a in range(3) if a != axis])
+    return array.take(low, axis=axis) * (1 - w) + array.take(low + 1, axis=axis) * w
