@@ -193,3 +193,24 @@ def test_wide_gaussian_matches_the_direct_filter(sigma):
     coarse = wide_gaussian(field, sigma)
     assert coarse.dtype == np.float32 and coarse.shape == field.shape
     assert np.abs(coarse - direct).max() < 0.01 * np.ptp(direct)
+
+
+def test_separable_upsampling_and_label_maxima_match_scipy():
+    """The coarse grid's upsampling equals ``ndimage.zoom`` (linear, block-aligned, held beyond the last block
+    centre), a one-block axis included; the per-structure maxima equal ``ndimage.maximum``."""
+    from carotid.segment.calcium import label_maximum
+    from carotid.segment.intensity import _upsample_linear
+
+    rng = np.random.default_rng(2)
+    coarse = rng.random((5, 1, 7)).astype(np.float32)
+    factor, shape = (3, 4, 5), (14, 4, 33)
+    fine = coarse
+    for axis in range(3):
+        fine = _upsample_linear(fine, axis, factor[axis], shape[axis])
+    zoomed = ndimage.zoom(coarse, factor, order=1, mode="nearest", grid_mode=True)[:14, :4, :33]
+    assert fine.shape == shape and np.abs(fine - zoomed).max() < 1e-6
+    labels = rng.integers(0, 6, 500)
+    values = rng.normal(size=500)
+    inside = labels > 0
+    assert np.array_equal(label_maximum(values[inside], labels[inside], 5),
+                          ndimage.maximum(values, labels, np.arange(1, 6)))

@@ -420,8 +420,10 @@ def _upsample_linear(array: np.ndarray, axis: int, factor: int, size: int) -> np
     axis at a time, so the full-size array is formed once instead of interpolating eight corners per voxel.
     """
     n = array.shape[axis]
-    if factor == 1 or n == 1:
-        return np.repeat(array, factor, axis=axis).take(np.arange(size), axis=axis) if factor > 1 else array
+    if factor == 1:
+        return array
+    if n == 1:
+        return np.repeat(array, size, axis=axis)
     c = np.clip((np.arange(size) + 0.5) / factor - 0.5, 0.0, n - 1)
     low = np.minimum(c.astype(int), n - 2)
     w = np.expand_dims((c - low).astype(np.float32), [a for a in range(3) if a != axis])
