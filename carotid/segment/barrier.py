@@ -38,6 +38,7 @@ import numpy as np
 from scipy import ndimage
 
 from carotid.segment.intensity import region_box
+from carotid.segment.preprocess import gaussian_filter, maximum_filter
 
 
 def half_level_barrier(contrast: np.ndarray, spacing_kji, fraction: float = 0.5, sigma_mm: float = 0.3,
@@ -65,7 +66,7 @@ def half_level_barrier(contrast: np.ndarray, spacing_kji, fraction: float = 0.5,
     """
     spacing_kji = np.asarray(spacing_kji, float)
     smooth = _smooth(contrast, spacing_kji, sigma_mm)
-    peak = ndimage.maximum_filter(smooth, size=_box(reach_mm, spacing_kji))
+    peak = maximum_filter(smooth, size=_box(reach_mm, spacing_kji))
     return smooth < np.float32(fraction) * peak
 
 
@@ -99,14 +100,14 @@ def half_maximum_speed(contrast: np.ndarray, spacing_kji, sigma_mm: float = 0.3,
     """
     spacing_kji = np.asarray(spacing_kji, float)
     smooth = _smooth(contrast, spacing_kji, sigma_mm)
-    peak = ndimage.maximum_filter(smooth, size=_box(reach_mm, spacing_kji))
+    peak = maximum_filter(smooth, size=_box(reach_mm, spacing_kji))
     return np.tanh((np.float32(0.5) * peak - smooth) / np.float32(width)).astype(np.float32)
 
 
 def _smooth(contrast: np.ndarray, spacing_kji: np.ndarray, sigma_mm: float) -> np.ndarray:
     """Gaussian-smoothed contrast (at least half a voxel), capped at the lumen level 1."""
     sigma = np.maximum(sigma_mm, 0.5 * spacing_kji) / spacing_kji
-    return ndimage.gaussian_filter(np.minimum(contrast, np.float32(1.0)), sigma)
+    return gaussian_filter(np.minimum(contrast, np.float32(1.0)), sigma)
 
 
 def _box(half_width_mm: float, spacing_kji: np.ndarray) -> tuple[int, ...]:
@@ -147,7 +148,7 @@ def under_enhanced(contrast: np.ndarray, spacing_kji, level: float = 0.8, width_
     """
     spacing_kji = np.asarray(spacing_kji, float)
     smooth = _smooth(contrast, spacing_kji, sigma_mm)
-    brightest = ndimage.maximum_filter(_smooth(contrast, spacing_kji, 2.0 * sigma_mm), size=_box(reach_mm, spacing_kji))
+    brightest = maximum_filter(_smooth(contrast, spacing_kji, 2.0 * sigma_mm), size=_box(reach_mm, spacing_kji))
     dim = (smooth < np.float32(level) * brightest) & (smooth > np.float32(0.1))
     return dim & (ndimage.minimum_filter(smooth, size=_box(width_mm, spacing_kji)) >= np.float32(0.5) * smooth)
 

@@ -40,6 +40,7 @@ from scipy import ndimage
 from skimage.segmentation import watershed
 
 from carotid.segment.intensity import region_box
+from carotid.segment.preprocess import gaussian_filter
 
 TISSUE, LUMEN, STRUCTURE = 1, 2, 3
 # Tissue level: below the background plus this fraction of the lumen's contrast (lightly smoothed image).
@@ -79,7 +80,7 @@ def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: flo
     spacing_kji = np.asarray(spacing_kji, float)
     sigma_mm = max(sigma_mm, 0.5 * float(spacing_kji.max()))
     image = np.asarray(image, np.float32)
-    smooth = ndimage.gaussian_filter(image, sigma_mm / spacing_kji)
+    smooth = gaussian_filter(image, sigma_mm / spacing_kji)
     hot = smooth > np.float32(top)
     if not hot.any():
         return image, hot, {"structures": 0, "volume_mm3": 0.0, "blur_amplitude_max": 0.0}
@@ -213,7 +214,7 @@ def structure_blur(image: np.ndarray, labels: np.ndarray, n: int, fraction: np.n
     """
     sigma = blur_mm / np.asarray(spacing_kji, float)
     index = np.arange(1, n + 1)
-    kernel = ndimage.gaussian_filter(fraction, sigma)
+    kernel = gaussian_filter(fraction, sigma)
     fit = np.where(kernel > np.float32(0.05), owner, 0)
     excess = np.asarray(image, np.float32) - np.float32(background)
     amplitude = np.asarray(ndimage.sum(kernel * excess, fit, index), float) / np.maximum(
@@ -223,7 +224,7 @@ def structure_blur(image: np.ndarray, labels: np.ndarray, n: int, fraction: np.n
     peak, reach = (label_maximum(v[inside], labels[inside], n) for v in (excess, kernel))
     amplitude = np.clip(amplitude, 0.0, peak / np.maximum(reach, 0.5))
     values = np.concatenate([[0.0], amplitude]).astype(np.float32)[labels] * fraction
-    return ndimage.gaussian_filter(values, sigma), amplitude
+    return gaussian_filter(values, sigma), amplitude
 
 
 def edge_fraction(image: np.ndarray, extent: np.ndarray, near: np.ndarray, spacing_kji, blur_mm: float,

@@ -7,15 +7,55 @@
   looking like more contrast.
 * ``denoise``: edge-preserving curvature anisotropic diffusion (SimpleITK).
 * ``edge_stopping``: ``g = 1 / (1 + |grad I| / beta)`` of eq. (1).
+* ``gaussian_filter``, ``maximum_filter``: scipy.ndimage's, computed in slabs on two threads for a large image.
 """
 
 from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import SimpleITK as sitk
 from scipy import ndimage
 
 from carotid.io import Volume, to_sitk
+
+
+# Voxels from which the filters below split the work into slabs: on a 256^3 image two threads take 0.46 s
+# for what one takes in 0.81 s (scipy.ndimage releases the GIL); below this the threads do not pay.
+SLAB_VOXELS = 2 ** 22
+WORKERS = 2
+
+
+def _in_slabs(func, array: np.ndarray, halo: int) -> np.ndarray:
+    """``func(array)`` of a filter whose output at a voxel depends on the input within ``halo`` voxels along
+    axis 0: each of ``WORKERS`` slabs along axis 0 is filtered with ``halo`` voxels of its neighbours and
+    cropped, on a thread each.  The result equals ``func(array)`` bit for bit (the array's own faces are the
+    slabs' outer faces, where the filter's boundary mode applies as before)."""
+    n = array.shape[0]
+    if array.size < SLAB_VOXELS or n < 2 * WORKERS * (halo + 1):
+        return func(array)
+    cuts = np.linspace(0, n, WORKERS + 1).astype(int)
+
+    def slab(k: int) -> np.ndarray:
+        low, high = max(cuts[k] - halo, 0), min(cuts[k + 1] + halo, n)
+        return func(array[low:high])[cuts[k] - low:cuts[k + 1] - low]
+
+    with ThreadPoolExecutor(WORKERS) as pool:
+        return np.concatenate(list(pool.map(slab, range(WORKERS))))
+
+
+def gaussian_filter(array: np.ndarray, sigma, order=0, **options) -> np.ndarray:
+    """``scipy.ndimage.gaussian_filter`` (same arguments, default ``truncate`` 4), in slabs (:func:`_in_slabs`)."""
+    sigma0 = float(np.broadcast_to(np.asarray(sigma, float), (array.ndim,))[0])
+    halo = int(options.get("truncate", 4.0) * sigma0 + 0.5)
+    return _in_slabs(lambda a: ndimage.gaussian_filter(a, sigma, order=order, **options), array, halo)
+
+
+def maximum_filter(array: np.ndarray, size) -> np.ndarray:
+    """``scipy.ndimage.maximum_filter`` of a box ``size`` (int or per axis), in slabs (:func:`_in_slabs`)."""
+    halo = int(np.broadcast_to(np.asarray(size, int), (array.ndim,))[0]) // 2 + 1
+    return _in_slabs(lambda a: ndimage.maximum_filter(a, size=size), array, halo)
 
 
 def window_hu(hu: np.ndarray, low=-100.0, high=550.0, fold: float = 3.0) -> np.ndarray:
@@ -90,7 +130,7 @@ def edge_stopping(image: np.ndarray, spacing_kji, beta: float = 0.1, sigma_mm: f
     for axis in range(3):
         order = [0, 0, 0]
         order[axis] = 1
-        d = ndimage.gaussian_filter(image, sigma, order=order, output=np.float32)
+        d = gaussian_filter(image, sigma, order=order, output=np.float32)
         d /= np.float32(spacing_kji[axis])
         sq += d * d
     return (1.0 / (1.0 + np.sqrt(sq) / np.float32(beta))).astype(np.float32)
