@@ -103,6 +103,24 @@ def test_implicit_step_is_not_bounded_by_the_thinnest_layer():
     assert steps["implicit"] >= 30 * steps["explicit"]
 
 
+def test_nodal_rate_is_the_lumped_mass_root_mean_square_of_the_element_rates():
+    """Two tetrahedra on one base triangle: a regular one (volume V, rate 1) and a flat one (volume V/100,
+    rate 10).  The base nodes get sqrt((V + V/100 * 100) / (V + V/100)); the apex of the regular one 1, that of
+    the flat one 10 (all its elements are flat, so it keeps their step).  The mean (1.089) or the maximum (10)
+    at the base nodes fail."""
+    from carotid.flow.assembly import lumped_mass, nodal_rate
+
+    points = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0, 0, -0.01]], float)
+    tets = np.array([[0, 1, 2, 3], [0, 2, 1, 4]])
+    volumes = tet_volumes(points, tets)
+    np.testing.assert_allclose(volumes, [1 / 6, 0.01 / 6])
+    out = np.empty(5)
+    nodal_rate(tets, volumes, np.array([1.0, 10.0]), lumped_mass(volumes, tets, 5), out)
+    np.testing.assert_allclose(out, [np.sqrt(2 / 1.01)] * 3 + [1.0, 10.0])
+    nodal_rate(tets, volumes, np.array([3.0, 3.0]), lumped_mass(volumes, tets, 5), out)
+    np.testing.assert_allclose(out, 3.0)
+
+
 def test_pressure_solvers_agree_and_the_implicit_matrix_bounds_every_step():
     import scipy.sparse as sp
 

@@ -258,6 +258,20 @@ def element_convective_rate(tets, grads, u, out):
         out[e] = 0.125 * rate  # 0.5 * (1/4 of the nodal sum) * sum_i
 
 
+@nb.njit(cache=True)
+def nodal_rate(tets, volumes, rate, mass, out):
+    """Lumped-mass root mean square of the element rates ``rate`` (m,) at each node, ``sqrt(sum_e (V_e / 4)
+    r_e^2 / m_i)`` with ``m_i`` the lumped mass (:func:`lumped_mass`), shape (n,), the unit of ``rate``;
+    overwrites ``out``."""
+    out[:] = 0.0
+    for e in range(tets.shape[0]):
+        w = 0.25 * volumes[e] * rate[e] * rate[e]
+        for k in range(4):
+            out[tets[e, k]] += w
+    for i in range(out.shape[0]):
+        out[i] = np.sqrt(out[i] / mass[i])
+
+
 def nodal_average(values: np.ndarray, weights: np.ndarray, cells: np.ndarray, n: int) -> np.ndarray:
     """Weighted average at the nodes of per-cell ``values`` (c, ...) over ``cells`` (c, k) with ``weights`` (c,).
 

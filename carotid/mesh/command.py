@@ -8,6 +8,11 @@ boundary loop, an unlabelled closed one gets its flat end caps detected.
 The file must be in mm (``--scale 1000`` for metres: a surface spanning less
 than 0.5 units is refused).  A surface with self-intersecting or needle
 triangles has its wall remeshed in place first (``carotid.mesh.repair``).
+With ``--from-surface`` the case folder also gets the surface that was meshed
+(``surface.vtp``) and its centerlines (``centerlines.vtp``, from the surface's
+signed distance), so that ``carotid simulate`` (its Doppler gates and
+``--convergence``, whose coarser levels are remeshed from ``surface.vtp``) and
+``carotid report`` take it like a case made by ``carotid surface``.
 """
 
 from __future__ import annotations
@@ -100,6 +105,35 @@ def mesh_case(surface: pv.PolyData, case_dir: Path, **params) -> dict:
     return quality
 
 
+def write_case_geometry(surface: pv.PolyData, case_dir: Path) -> str:
+    """Write ``surface.vtp`` and ``centerlines.vtp`` of a case meshed from an external surface.
+
+    Parameters
+    ----------
+    surface : pyvista.PolyData
+        The labelled closed surface that was meshed, mm.
+    case_dir : Path
+        The case folder.
+
+    Returns
+    -------
+    str
+        What was written, for the command's output.  Centerlines that cannot be traced (a surface that is
+        not a vessel tree) are reported there and skipped: the mesh stands without them.
+    """
+    from carotid.centerline import compute_centerlines, write_centerlines
+    from carotid.surface.external import levelset_from_surface
+    from carotid.surface.pipeline import write_surface
+
+    write_surface(surface, case_dir)
+    try:
+        centerlines = compute_centerlines(levelset_from_surface(surface))
+    except CarotidError as error:
+        return f"surface.vtp written; no centerlines.vtp ({error})"
+    write_centerlines(centerlines, case_dir)
+    return f"surface.vtp and centerlines.vtp ({', '.join(b.name for b in centerlines.branches)}) written"
+
+
 def cmd_mesh(args: argparse.Namespace) -> int:
     """Run ``carotid mesh`` (see :func:`register`)."""
     p = MeshStageParameters(layers=args.layers, ratio=args.ratio, thickness_mm=args.thickness or 0.0,
@@ -133,6 +167,8 @@ def cmd_mesh(args: argparse.Namespace) -> int:
           f"{args.layers} layers, {elements['core']} core), core min dihedral {floor['worst_deg']:.1f} deg"
           f"{slivers}{layer}, volume error {quality['volume']['relative_error']:.1e}, "
           f"{quality['seconds']['total']:.1f} s")
+    if args.from_surface is not None:
+        print(write_case_geometry(surface, case_dir))
     return 0
 
 
