@@ -15,7 +15,8 @@ planes); each rim is then closed by a new planar cap
 old cap in its plane.  Frontal-Delaunay leaves a few needles where the
 pieces of the reparametrisation meet (fluid.stl: 15 wall triangles under
 10 degrees, the smallest 2.4); their prisms split into flat tetrahedra
-whose convective time step is a tenth of the rest's.  So the result is
+whose convective rate set the step of the whole flow run (5e-6 s from
+the start of the cycle on fluid.stl).  So the result is
 given ``POLISH_ROUNDS`` rounds of the isotropic remesher
 (:func:`carotid.surface.remesh.remesh`) at the edge lengths gmsh reached,
 projected onto gmsh's surface (the nearest-triangle projection onto the
@@ -62,7 +63,7 @@ def surface_defects(surface: Surface, min_angle_deg: float = 5.0) -> dict:
 CIRCUMFERENCE_ELEMENTS = 24
 """Edges around a circular section of the local radius at least (the size field of :func:`wall_sizes`).
 24 chords cut 1.1 % off a circle's area; the remeshed walls of the tests (fluid.stl, the CAD-style nozzle
-STLs, new vertices on the old wall) lose 0.3-0.4 % of their volume."""
+STLs, new vertices on the old wall) lose 0.3-0.45 % of their volume."""
 
 POLISH_ROUNDS = 2
 """Rounds of :func:`carotid.surface.remesh.remesh` after gmsh (one leaves fluid.stl 4 triangles under 20
