@@ -572,7 +572,7 @@ class CBSSolver:
         the volume-weighted means of ``c_e`` (convection) and ``c_e^2`` (the characteristic term) over the
         node's elements, which the root mean square bounds both: on a uniform mesh the rule is the
         element-wise one, and a few flat elements among normal ones no longer hold the whole mesh to their
-        step (on the fluid.stl carotids their directional rate reaches 2.1-3.5 times the nodal bound, where
+        step (on the fluid.stl carotids their directional rate reaches 2.1-2.7 times the nodal bound, where
         the layer is thinned at the flow divider and the flow crosses it).  The CFL is then the nodal one.
         """
         laminar_implicit = self.viscous == "implicit" and self.turbulence is None
