@@ -108,7 +108,7 @@ def test_nodal_rate_is_the_lumped_mass_root_mean_square_of_the_element_rates():
     rate 10).  The base nodes get sqrt((V + V/100 * 100) / (V + V/100)); the apex of the regular one 1, that of
     the flat one 10 (all its elements are flat, so it keeps their step).  The mean (1.089) or the maximum (10)
     at the base nodes fail."""
-    from carotid.flow.assembly import lumped_mass, nodal_rate
+    from carotid.flow.assembly import lumped_mass, nodal_average, nodal_rate
 
     points = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0, 0, -0.01]], float)
     tets = np.array([[0, 1, 2, 3], [0, 2, 1, 4]])
@@ -117,6 +117,7 @@ def test_nodal_rate_is_the_lumped_mass_root_mean_square_of_the_element_rates():
     out = np.empty(5)
     nodal_rate(tets, volumes, np.array([1.0, 10.0]), lumped_mass(volumes, tets, 5), out)
     np.testing.assert_allclose(out, [np.sqrt(2 / 1.01)] * 3 + [1.0, 10.0])
+    np.testing.assert_allclose(out, np.sqrt(nodal_average(np.array([1.0, 100.0]), volumes, tets, 5)))
     nodal_rate(tets, volumes, np.array([3.0, 3.0]), lumped_mass(volumes, tets, 5), out)
     np.testing.assert_allclose(out, 3.0)
 
