@@ -40,7 +40,8 @@ SMOOTH_MM = 1.0
 
 
 def refine(image: np.ndarray, phi: np.ndarray, spacing_kji, lumen, background: float, blur_mm: float,
-           exclude: np.ndarray | None = None, iterations: int = 20, gain: float = 2.0) -> np.ndarray:
+           exclude: np.ndarray | None = None, iterations: int = 20, gain: float = 2.0,
+           normal: bool = True) -> np.ndarray:
     """Level set moved to the wall that best explains the image under a Gaussian blur.
 
     Parameters
@@ -63,6 +64,9 @@ def refine(image: np.ndarray, phi: np.ndarray, spacing_kji, lumen, background: f
         Gradient steps.
     gain : float
         Step length in blur widths per unit of normalised misfit.
+    normal : bool
+        Take the tissue level along each wall normal (``normal_background``); False keeps the shell's
+        smoothed mean (``local_background``) everywhere.
 
     Returns
     -------
@@ -82,16 +86,20 @@ def refine(image: np.ndarray, phi: np.ndarray, spacing_kji, lumen, background: f
     if exclude is not None and exclude[box].any():
         weight &= ndimage.distance_transform_edt(~exclude[box], sampling=spacing) > 2.0 * sigma_mm
     weight &= phi0 < np.float32(0.5 * sigma_mm)
-    tissue = local_background(crop, phi0, spacing, sigma_mm, None if exclude is None else exclude[box], background)
+    excluded = None if exclude is None else exclude[box]
+    tissue = local_background(crop, phi0, spacing, sigma_mm, excluded, background)
+    if normal:
+        tissue = normal_background(crop, phi0, spacing, sigma_mm, excluded, tissue)
     contrast = np.maximum(level - tissue, np.float32(1e-6))
     sigma = sigma_mm / spacing
     smoothing = np.hypot(sigma_mm, SMOOTH_MM) / spacing
     ramp = np.float32(spacing.min())
     step = np.float32(gain * sigma_mm)
+    seen_tissue = ndimage.gaussian_filter(tissue, sigma)
     out = phi0.copy()
     for _ in range(iterations):
-        lumen_part = ndimage.gaussian_filter(np.clip(np.float32(0.5) - out / ramp, 0, 1), sigma)
-        misfit = np.where(weight, crop - tissue - contrast * lumen_part, 0)
+        lumen_part = ndimage.gaussian_filter(contrast * np.clip(np.float32(0.5) - out / ramp, 0, 1), sigma)
+        misfit = np.where(weight, crop - seen_tissue - lumen_part, 0)
         speed = ndimage.gaussian_filter(misfit, smoothing) / contrast
         out = np.clip(out - step * speed, phi0 - np.float32(sigma_mm), phi0 + np.float32(sigma_mm))
     result = np.array(phi, np.float32, copy=True)
@@ -115,3 +123,61 @@ def local_background(image: np.ndarray, phi: np.ndarray, spacing, blur_mm: float
     if exclude is not None:
         shell &= ~exclude
     return local_level(image, shell, spacing, scale_mm, default)
+
+
+def normal_background(image: np.ndarray, phi: np.ndarray, spacing, blur_mm: float, exclude: np.ndarray | None,
+                      fallback: np.ndarray, width_mm: float = 1.5, samples: int = 4) -> np.ndarray:
+    """Tissue level each voxel near the wall sees: the image along its wall normal, beyond the blur's reach.
+
+    The shell mean of ``local_background`` averages whatever lies around the vessel over millimetres, and
+    where fat (-100 HU) and muscle (+50 HU) meet along the wall it puts the level between the two, so the
+    model pulls the wall in beside the fat and pushes it out beside the muscle.  Here the level of a voxel
+    at signed distance ``phi`` is the mean of the (trilinear) image at ``samples`` points on its normal
+    ``grad phi``, from ``2.5 blur_mm`` to ``2.5 blur_mm + width_mm`` outside the wall (from the voxel itself
+    outward beyond that): the tissue that the blur mixes into that voxel.  A sample is dropped where it lies
+    in ``exclude`` or nearer another part of the wall than its distance along the normal (a neighbouring
+    branch); where every sample is dropped, and deep inside the lumen, ``fallback`` is kept.
+
+    Parameters
+    ----------
+    image : ndarray, float32, shape (nk, nj, ni)
+    phi : ndarray, float32, same shape
+        Signed distance to the wall, mm, negative inside.
+    spacing : array_like, shape (3,)
+        Voxel size (k, j, i), mm.
+    blur_mm : float
+        Standard deviation of the image's blur, mm.
+    exclude : ndarray of bool, same shape, or None
+        Voxels whose intensity is not tissue (neighbours held out, calcium).
+    fallback : ndarray, float32, same shape
+        Level kept where no sample is valid (``local_background``).
+    width_mm : float
+        Length of the sampled stretch of the normal, mm.
+    samples : int
+        Points on it.
+
+    Returns
+    -------
+    ndarray, float32, same shape
+    """
+    spacing = np.asarray(spacing, np.float32)
+    inner = np.float32(2.5 * blur_mm)
+    near = np.nonzero(phi > -np.float32(blur_mm + 2.0 * spacing.max()))
+    grad = np.stack([g[near] for g in np.gradient(phi, *spacing)])
+    grad /= np.maximum(np.linalg.norm(grad, axis=0), np.float32(1e-6))
+    start = np.maximum(inner - phi[near], 0)
+    index = np.stack(near).astype(np.float32)
+    total = np.zeros(start.shape, np.float32)
+    count = np.zeros(start.shape, np.float32)
+    for offset in np.linspace(0.0, width_mm, samples, dtype=np.float32):
+        reach = start + offset
+        points = index + grad * (reach / spacing[:, None])
+        sampled_phi = ndimage.map_coordinates(phi, points, order=1, mode="nearest")
+        valid = sampled_phi > phi[near] + reach - np.float32(0.5) * inner
+        if exclude is not None:
+            valid &= ~ndimage.map_coordinates(exclude, points, order=0, mode="nearest")
+        total += np.where(valid, ndimage.map_coordinates(image, points, order=1, mode="nearest"), 0)
+        count += valid
+    out = np.array(fallback, np.float32, copy=True)
+    out[near] = np.where(count > 0, total / np.maximum(count, 1), out[near])
+    return out
