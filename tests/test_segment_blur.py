@@ -10,7 +10,7 @@ from scipy import ndimage
 
 from carotid.segment import calcium
 from carotid.segment.calcium import hyperdense_edge
-from carotid.segment.deblur import refine
+from carotid.segment.deblur import normal_background, refine
 from carotid.segment.intensity import edge_blur, wide_gaussian
 
 B, A, P = 40.0, 300.0, 1000.0  # tissue, lumen and calcium levels (HU)
@@ -164,6 +164,59 @@ def test_refinement_narrows_a_front_that_is_too_wide_and_stays_within_a_blur_wid
     # A front 2 mm too wide may move by one blur width only: the refinement corrects, it does not re-segment.
     far = refine(image, (sdf - 2.0).astype(np.float32), SPACING, A, B, 0.6)
     assert radius_of(far) >= 4.0 - 0.6 - 0.02
+
+
+def ray_radii(phi, spacing=SPACING):
+    """Radius (mm) of the zero level of ``phi`` on 36 rays from the tube's axis in the middle section; ray
+    ``a`` points at angle ``10 a`` degrees from +i towards +j."""
+    centre = (np.array(phi.shape) - 1) / 2
+    angles = np.radians(np.arange(0, 360, 10))
+    r = np.arange(0.0, 3.5, 0.01)
+    coords = np.stack([np.full((36, r.size), centre[0]),
+                       centre[1] + np.outer(np.sin(angles), r) / spacing[1],
+                       centre[2] + np.outer(np.cos(angles), r) / spacing[2]]).reshape(3, -1)
+    values = ndimage.map_coordinates(phi, coords, order=1).reshape(36, r.size)
+    return np.array([crossing(-v, r, 0.0) for v in values])
+
+
+@pytest.mark.parametrize("sigma", [0.6, 0.8])
+@pytest.mark.parametrize("offset", [-0.3, 0.3])
+def test_fat_on_one_side_of_the_wall_neither_dents_nor_bulges_it(sigma, offset):
+    """A tube with fat (-90 HU) against one half of its wall and muscle (+50 HU) against the other: the tissue
+    level taken along each normal puts both halves on the true wall; the shell's smoothed mean, which averages
+    the two tissues, pulls the fat side in and pushes the muscle side out by about 0.1 mm."""
+    shape = (24, 80, 80)
+    sdf = tube_sdf(shape, 2.0)
+    _, _, x = grid(shape)
+    tissue = np.where(x < 0, -90.0, 50.0)
+    fraction = occupancy(sdf)
+    image = blurred(A * fraction + tissue * (1 - fraction), sigma)
+    image = (image + np.random.default_rng(1).normal(0, 10, shape)).astype(np.float32)
+    start = (sdf + offset).astype(np.float32)  # a front 0.3 mm too narrow or too wide
+    fat_side, muscle_side = np.arange(12, 25), np.r_[0:7, 30:36]
+    radii = ray_radii(refine(image, start, SPACING, A, 0.0, sigma))
+    assert radii[fat_side].mean() == pytest.approx(2.0, abs=0.03)
+    assert radii[muscle_side].mean() == pytest.approx(2.0, abs=0.03)
+    # Mutation: the shell's smoothed mean alone.
+    shell = ray_radii(refine(image, start, SPACING, A, 0.0, sigma, normal=False))
+    assert shell[fat_side].mean() < 1.95 and shell[muscle_side].mean() > 2.04
+
+
+def test_the_tissue_along_a_normal_is_never_read_in_a_neighbouring_branch():
+    """Two parallel lumens 1.2 mm apart, as at a flow divider: the normal of the wall facing the other lumen
+    reaches into it within 2.5 blur widths; those samples are dropped and the tissue level stays the
+    tissue's, not the lumen's."""
+    shape = (24, 64, 96)
+    _, y, x = grid(shape)
+    sdf = np.minimum(np.hypot(x + 3.2, y), np.hypot(x - 3.2, y)) - 2.0  # walls 1.2 mm apart at x = 0
+    image = blurred(B + (A - B) * occupancy(sdf), 0.6).astype(np.float32)
+    level = normal_background(image, sdf.astype(np.float32), SPACING, 0.6, None,
+                              np.full(shape, B, np.float32))
+    facing = (np.abs(sdf) < 0.1) & (np.abs(x) < 1.5)
+    assert facing.sum() > 50
+    np.testing.assert_allclose(level[facing], B, atol=5.0)
+    beyond = (np.abs(sdf) < 0.1) & (np.abs(x) > 4.5)  # walls facing away read the blurred-out tissue
+    np.testing.assert_allclose(level[beyond], B, atol=5.0)
 
 
 def test_a_bright_spot_inside_the_lumen_is_not_calcium(monkeypatch):

@@ -135,8 +135,8 @@ def normal_background(image: np.ndarray, phi: np.ndarray, spacing, blur_mm: floa
     at signed distance ``phi`` is the mean of the (trilinear) image at ``samples`` points on its normal
     ``grad phi``, from ``2.5 blur_mm`` to ``2.5 blur_mm + width_mm`` outside the wall (from the voxel itself
     outward beyond that): the tissue that the blur mixes into that voxel.  A sample is dropped where it lies
-    in ``exclude`` or nearer another part of the wall than its distance along the normal (a neighbouring
-    branch); where every sample is dropped, and deep inside the lumen, ``fallback`` is kept.
+    in ``exclude`` or within the blur's reach of another part of the wall (a neighbouring branch, whose lumen
+    the normal may enter); where every sample is dropped, and deep inside the lumen, ``fallback`` is kept.
 
     Parameters
     ----------
@@ -173,7 +173,7 @@ def normal_background(image: np.ndarray, phi: np.ndarray, spacing, blur_mm: floa
         reach = start + offset
         points = index + grad * (reach / spacing[:, None])
         sampled_phi = ndimage.map_coordinates(phi, points, order=1, mode="nearest")
-        valid = sampled_phi > phi[near] + reach - np.float32(0.5) * inner
+        valid = sampled_phi > np.float32(0.9) * inner
         if exclude is not None:
             valid &= ~ndimage.map_coordinates(exclude, points, order=0, mode="nearest")
         total += np.where(valid, ndimage.map_coordinates(image, points, order=1, mode="nearest"), 0)
