@@ -11,13 +11,15 @@ side.  With a scanner blur of 0.6-0.8 mm a 2.3 mm throat reads 0.3-0.6 mm
 too wide, and NASCET 10-20 points too low.
 
 ``refine`` removes that bias.  It models the image near the wall as
-``M = B + (A - B) G_sigma * H(-phi)``: the lumen indicator (with a
-partial-volume ramp one voxel wide) blurred by a Gaussian of the image's own
-blur (``intensity.edge_blur``), between the lumen level ``A`` followed along
-the vessel and the background ``B`` measured in a shell just beyond the
-blur's reach.  It then descends the least-squares misfit ``|I - M|^2``
+``M = G_sigma * (A H(-phi) + B (1 - H(-phi)))``: the lumen indicator (with a
+partial-volume ramp one voxel wide) between the lumen level ``A``, followed
+along the vessel, and the tissue level ``B``, blurred by a Gaussian of the
+image's own blur (``intensity.edge_blur``).  ``B`` varies around the vessel
+(fat at -100 HU and muscle at +50 HU may share one wall), so each voxel takes
+it from the image along its wall normal just beyond the blur's reach
+(``normal_background``).  It then descends the least-squares misfit ``|I - M|^2``
 restricted to a band around the wall: the speed of the wall is
-``G_sigma * (I - M) / (A - B)``, positive (outward) where the image is
+``G_sigma * (I - M) / (A - B)`` (smoothed over ``SMOOTH_MM``), positive (outward) where the image is
 brighter than the model.  The displacement is bounded by one blur width
 from the front the evolution converged to, so the refinement corrects a
 position and never changes what the front captured; voxels where a
@@ -170,10 +172,8 @@ def normal_background(image: np.ndarray, phi: np.ndarray, spacing, blur_mm: floa
     total = np.zeros(start.shape, np.float32)
     count = np.zeros(start.shape, np.float32)
     for offset in np.linspace(0.0, width_mm, samples, dtype=np.float32):
-        reach = start + offset
-        points = index + grad * (reach / spacing[:, None])
-        sampled_phi = ndimage.map_coordinates(phi, points, order=1, mode="nearest")
-        valid = sampled_phi > np.float32(0.9) * inner
+        points = index + grad * ((start + offset) / spacing[:, None])
+        valid = ndimage.map_coordinates(phi, points, order=1, mode="nearest") > np.float32(0.9) * inner
         if exclude is not None:
             valid &= ~ndimage.map_coordinates(exclude, points, order=0, mode="nearest")
         total += np.where(valid, ndimage.map_coordinates(image, points, order=1, mode="nearest"), 0)
