@@ -219,6 +219,24 @@ def test_the_tissue_along_a_normal_is_never_read_in_a_neighbouring_branch():
     np.testing.assert_allclose(level[beyond], B, atol=5.0)
 
 
+def test_the_tissue_along_a_normal_skips_what_is_excluded():
+    """A vein (250 HU) 1.5-3.5 mm beyond one side of a tube's wall, held out of the lumen up to the darkest
+    point between the two (as ``barrier.competing_region`` holds it): the normals on that side end in it,
+    and the tissue level there stays at the fallback; read through it (the mutant), it is the vein's."""
+    shape = (24, 64, 80)
+    _, y, x = grid(shape)
+    sdf = tube_sdf(shape, 2.0)
+    vein = (x > 3.5) & (x < 5.5) & (np.abs(y) < 3.0)
+    image = blurred(np.where(vein, 250.0, B) + (A - B) * occupancy(sdf), 0.6).astype(np.float32)
+    fallback = np.full(shape, B, np.float32)
+    facing = (np.abs(sdf) < 0.1) & (x > 1.8)
+    held = (x > 2.75) & (np.abs(y) < 3.5)
+    level = normal_background(image, sdf.astype(np.float32), SPACING, 0.6, held, fallback)
+    np.testing.assert_allclose(level[facing], B, atol=0.1 * (250.0 - B))
+    through = normal_background(image, sdf.astype(np.float32), SPACING, 0.6, None, fallback)
+    assert np.median(through[facing]) > B + 0.5 * (250.0 - B)
+
+
 def test_a_bright_spot_inside_the_lumen_is_not_calcium(monkeypatch):
     """Contrast brighter than the window's top 4 mm from any wall (streaming, noise on a coarse scan) stays lumen."""
     shape = (40, 64, 64)
