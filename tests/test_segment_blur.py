@@ -126,16 +126,22 @@ def test_nothing_hyperdense_leaves_the_image_alone():
     np.testing.assert_array_equal(corrected, lumen_only)
 
 
-def radius_of(phi, spacing=SPACING):
-    """Mean radius (mm) of the zero level of ``phi`` on rays from the tube's axis in the middle section."""
+def ray_radii(phi, spacing=SPACING):
+    """Radius (mm) of the zero level of ``phi`` on 36 rays from the tube's axis in the middle section; ray
+    ``a`` points at angle ``10 a`` degrees from +i towards +j."""
     centre = (np.array(phi.shape) - 1) / 2
-    angles = np.linspace(0, 2 * np.pi, 36, endpoint=False)
+    angles = np.radians(np.arange(0, 360, 10))
     r = np.arange(0.0, 3.5, 0.01)
     coords = np.stack([np.full((36, r.size), centre[0]),
                        centre[1] + np.outer(np.sin(angles), r) / spacing[1],
                        centre[2] + np.outer(np.cos(angles), r) / spacing[2]]).reshape(3, -1)
     values = ndimage.map_coordinates(phi, coords, order=1).reshape(36, r.size)
-    return float(np.mean([crossing(-v, r, 0.0) for v in values]))
+    return np.array([crossing(-v, r, 0.0) for v in values])
+
+
+def radius_of(phi, spacing=SPACING):
+    """Mean radius (mm) of the zero level of ``phi`` on rays from the tube's axis in the middle section."""
+    return float(np.mean(ray_radii(phi, spacing)))
 
 
 @pytest.mark.parametrize("radius,sigma", [(1.2, 0.7), (2.5, 0.5)])
@@ -164,19 +170,6 @@ def test_refinement_narrows_a_front_that_is_too_wide_and_stays_within_a_blur_wid
     # A front 2 mm too wide may move by one blur width only: the refinement corrects, it does not re-segment.
     far = refine(image, (sdf - 2.0).astype(np.float32), SPACING, A, B, 0.6)
     assert radius_of(far) >= 4.0 - 0.6 - 0.02
-
-
-def ray_radii(phi, spacing=SPACING):
-    """Radius (mm) of the zero level of ``phi`` on 36 rays from the tube's axis in the middle section; ray
-    ``a`` points at angle ``10 a`` degrees from +i towards +j."""
-    centre = (np.array(phi.shape) - 1) / 2
-    angles = np.radians(np.arange(0, 360, 10))
-    r = np.arange(0.0, 3.5, 0.01)
-    coords = np.stack([np.full((36, r.size), centre[0]),
-                       centre[1] + np.outer(np.sin(angles), r) / spacing[1],
-                       centre[2] + np.outer(np.cos(angles), r) / spacing[2]]).reshape(3, -1)
-    values = ndimage.map_coordinates(phi, coords, order=1).reshape(36, r.size)
-    return np.array([crossing(-v, r, 0.0) for v in values])
 
 
 @pytest.mark.parametrize("sigma", [0.6, 0.8])
