@@ -522,7 +522,7 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
                 level = local_level(source, core if core.any() else phi < 0, spacing, params.level_mm, model.lumen)
                 window = lumen_window(model, params, level)
                 image01 = window_hu(image, *window, params.fold)
-            ghat, g = speed_fields(image01, spacing, radius, sigma, params, stopped)
+            ghat, g = speed_fields(image01, spacing, radius, sigma, params)
             if params.half_maximum > 0:
                 half = half_maximum_speed(contrast_units(image01, window, model, level), spacing)
                 ghat = (1.0 - params.half_maximum) * ghat + params.half_maximum * half
