@@ -122,6 +122,119 @@ def test_nodal_rate_is_the_lumped_mass_root_mean_square_of_the_element_rates():
     np.testing.assert_allclose(out, 3.0)
 
 
+def _kuhn_box(xs, ys, zs) -> FlowMesh:
+    """Box of cells ``xs x ys x zs`` (node coordinates, m, ascending), each cut into the six Kuhn tetrahedra
+    along its 000-111 diagonal (a conforming mesh; congruent tetrahedra for equal spacings).  Inlet (2) at
+    x = xs[0], outlet (3) at x = xs[-1], wall (1) elsewhere."""
+    from itertools import permutations
+
+    nx, ny, nz = len(xs), len(ys), len(zs)
+    points = np.array(np.meshgrid(xs, ys, zs, indexing="ij")).reshape(3, -1).T
+    node = np.arange(nx * ny * nz).reshape(nx, ny, nz)
+    cells = np.stack(np.meshgrid(*(np.arange(n - 1) for n in (nx, ny, nz)), indexing="ij"), -1).reshape(-1, 3)
+    tets = []
+    for perm in permutations(range(3)):  # the path 000 -> e_p0 -> e_p0 + e_p1 -> 111
+        path = np.cumsum(np.vstack([np.zeros(3, int), np.eye(3, dtype=int)[list(perm)]]), axis=0)  # (4, 3)
+        corners = cells[:, None, :] + path[None]  # (cells, 4, 3)
+        tets.append(node[corners[..., 0], corners[..., 1], corners[..., 2]])
+    tets = np.concatenate(tets)
+    faces = np.sort(tets[:, [[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]]].reshape(-1, 3), axis=1)
+    faces, counts = np.unique(faces, axis=0, return_counts=True)
+    faces = faces[counts == 1]
+    x = points[faces, 0]
+    labels = np.where(np.all(x == xs[0], axis=1), 2, np.where(np.all(x == xs[-1], axis=1), 3, 1))
+    return FlowMesh(points, tets, faces, labels)
+
+
+def _laminar_implicit_step(mesh, u, safety=0.5, velocity_scale=0.1):
+    """``(dt, CFL)`` of a laminar implicit-viscosity CBSSolver for the velocity ``u`` (n, 3), set directly
+    (time_step reads only ``solver.u``)."""
+    from carotid.flow.cbs import CBSSolver
+    from carotid.flow.verify import NU
+
+    k = len(mesh.face_patch(2)[0])
+    solver = CBSSolver(mesh, lambda t: np.full(k, 0.3), NU, safety=safety, velocity_scale=velocity_scale,
+                       viscous="implicit")
+    assert solver.turbulence is None and solver.fixed_dt is None
+    solver.u = np.array(u, dtype=float)
+    return solver.time_step(solver.element_viscosity())
+
+
+def _directional_rates(mesh, u):
+    """Independent numpy version of the directional rate ``c_e = 0.5 sum_i |u_e . grad N_i|`` (u_e: the mean
+    of the vertex velocities; grad N_i from the inverse of the barycentric matrix) and the volumes."""
+    p = mesh.points[mesh.tets]  # (m, 4, 3)
+    a = np.concatenate([np.ones((len(p), 4, 1)), p], axis=2)  # rows (1, x_i): a @ coeffs = identity
+    grads = np.linalg.inv(a)[:, 1:, :].transpose(0, 2, 1)  # (m, 4 nodes, 3): column i of inv, rows 1..3
+    u_e = u[mesh.tets].mean(axis=1)
+    rate = 0.5 * np.abs(np.einsum("ec,eic->ei", u_e, grads)).sum(axis=1)
+    return rate, np.abs(np.linalg.det(a)) / 6.0
+
+
+def test_implicit_laminar_step_on_a_regular_mesh_is_the_element_rule():
+    """Uniform flow over a Kuhn mesh of cubes of side h.  The barycentric gradients of the tetrahedron on the
+    path 000 -> e_p0 -> e_p0 + e_p1 -> 111 are (-e_p0, e_p0 - e_p1, e_p1 - e_p2, e_p2) / h, so
+    ``0.5 sum_i |u . grad N_i|`` is U/h for u = U e_x and U/(sqrt(3) h) along the diagonal, the same in all
+    six tetrahedra: every node's root mean square is that rate, and dt = safety / rate as element-wise."""
+    h, U, safety = 1e-3, 0.3, 0.5
+    mesh = _kuhn_box(h * np.arange(5), h * np.arange(4), h * np.arange(4))
+    for direction, rate in (([1, 0, 0], U / h), (np.ones(3) / np.sqrt(3), U / (np.sqrt(3) * h))):
+        u = np.tile(U * np.asarray(direction, float), (mesh.n_points, 1))
+        dt, cfl = _laminar_implicit_step(mesh, u, safety)
+        assert dt == pytest.approx(safety / rate, rel=1e-12)
+        assert cfl == pytest.approx(safety, rel=1e-12)
+
+
+def test_implicit_laminar_step_is_nodal_past_a_thin_layer():
+    """A thin slab (eps = h/10) of Kuhn cells between cubes of side h.
+
+    Crossed by the uniform flow U e_x, its tetrahedra have the rate U/eps (ten times the U/h of the others)
+    but a tenth of their volume: the step is safety / max_i sqrt(sum_e V_e c_e^2 / sum_e V_e) over the
+    elements e of node i, recomputed here with numpy, and more than 1.5 times the element-wise
+    ``safety / max_e c_e`` (the mutant).  Along the slab (u = U e_y, tangential) the rate stays U/h
+    everywhere: the slab does not set the step, which is that of the regular mesh."""
+    h, eps, U, safety = 1e-3, 1e-4, 0.3, 0.5
+    regular = h * np.arange(4)
+    crossed = _kuhn_box(np.r_[0.0, h, 2 * h, 2 * h + eps, 3 * h + eps, 4 * h + eps], regular, regular)
+    u = np.tile([U, 0.0, 0.0], (crossed.n_points, 1))
+    rate, volumes = _directional_rates(crossed, u)
+    thin = volumes < 0.5 * h**3 / 6
+    np.testing.assert_allclose(volumes[thin], eps * h**2 / 6, rtol=1e-9)
+    np.testing.assert_allclose(rate[thin], U / eps, rtol=1e-9)
+    np.testing.assert_allclose(rate[~thin], U / h, rtol=1e-9)
+    idx = crossed.tets.ravel()
+    mass = np.bincount(idx, np.repeat(volumes, 4), minlength=crossed.n_points)
+    node_rate = np.sqrt(np.bincount(idx, np.repeat(volumes * rate**2, 4), minlength=crossed.n_points) / mass)
+    assert node_rate.max() < U / eps / 1.5
+    dt, cfl = _laminar_implicit_step(crossed, u, safety)
+    assert dt == pytest.approx(safety / node_rate.max(), rel=1e-12)
+    assert dt > 1.5 * safety / rate.max()  # the element-wise step (U/eps) is held to the slab
+    assert cfl == pytest.approx(safety, rel=1e-12)
+    # tangential: the slab is in a y-z plane, the flow along y
+    u = np.tile([0.0, U, 0.0], (crossed.n_points, 1))
+    rate, _ = _directional_rates(crossed, u)
+    np.testing.assert_allclose(rate, U / h, rtol=1e-9)
+    dt, _ = _laminar_implicit_step(crossed, u, safety)
+    assert dt == pytest.approx(safety * h / U, rel=1e-12)
+
+
+def test_implicit_laminar_step_at_rest_and_in_slow_flow_is_the_rest_step():
+    """The floor ``velocity_scale / h_rest``: on the Kuhn mesh every tetrahedron has volume h^3/6, the volume
+    of a regular tetrahedron of edge 2^(1/6) h, so the step at rest (and for any flow slower than that rate)
+    is safety 2^(1/6) h / velocity_scale; a faster flow is not floored."""
+    h, safety, scale = 1e-3, 0.5, 0.1
+    mesh = _kuhn_box(h * np.arange(5), h * np.arange(4), h * np.arange(4))
+    rest = safety * 2 ** (1 / 6) * h / scale
+    dt, cfl = _laminar_implicit_step(mesh, np.zeros((mesh.n_points, 3)), safety, scale)
+    assert dt == pytest.approx(rest, rel=1e-12) and cfl == 0.0
+    slow = 0.5 * scale / 2 ** (1 / 6)  # rate U/h half the floor
+    dt, cfl = _laminar_implicit_step(mesh, np.tile([slow, 0, 0], (mesh.n_points, 1)), safety, scale)
+    assert dt == pytest.approx(rest, rel=1e-12) and cfl == pytest.approx(0.5 * safety, rel=1e-12)
+    fast = 4 * slow
+    dt, _ = _laminar_implicit_step(mesh, np.tile([fast, 0, 0], (mesh.n_points, 1)), safety, scale)
+    assert dt == pytest.approx(0.5 * rest, rel=1e-12)
+
+
 def test_pressure_solvers_agree_and_the_implicit_matrix_bounds_every_step():
     import scipy.sparse as sp
 
