@@ -79,7 +79,7 @@ def prepare_surface(source: str, edge: float, out: str) -> dict:
 
     from carotid.centerline import compute_centerlines
     from carotid.mesh import check_surface
-    from carotid.mesh.boundary import signed_volume
+    from carotid.surface.mesh import signed_volume
     from carotid.mesh.layers import build_layers
     from carotid.surface.external import levelset_from_surface, load_external_surface
     from carotid.surface.pipeline import build_surface

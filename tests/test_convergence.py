@@ -64,11 +64,11 @@ def test_representative_size_and_bad_input():
 def test_coarsened_surface_scales_the_wall_and_keeps_the_caps():
     # the convergence levels' walls: edges factor times as long (shorter for factor < 1), same labels, caps in
     # their planes, the same lumen (volume within 3 %: the chords of 0.68 mm edges on a 1.5 mm radius cut 2 %)
-    from carotid.flow.convergence import coarsened_surface, local_edge_length
     from carotid.mesh.boundary import check_surface
     from carotid.mesh.mesher import median_edge
     from carotid.mesh.testing import labelled_tube
     from carotid.surface.mesh import from_polydata, signed_volume
+    from carotid.surface.remesh import coarsened_surface, local_edge_length
 
     surface = labelled_tube(radius=1.5, length=4.0, size=0.3)
     points, faces, labels = from_polydata(surface)

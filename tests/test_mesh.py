@@ -15,7 +15,7 @@ from conftest import FLUID_STL, needs_fluid_stl
 
 from carotid.errors import CarotidError
 from carotid.mesh import build_mesh, cap_open_ends, check_surface, label_flat_caps, write_mesh
-from carotid.mesh.boundary import LABELS, cap_planes, signed_volume
+from carotid.mesh.boundary import LABELS, cap_planes
 from carotid.mesh.command import register
 from carotid.mesh.core import boundary_faces, face_keys
 from carotid.mesh.io import split_cells
@@ -24,6 +24,7 @@ from carotid.mesh.mesher import CORE_MIN_DIHEDRAL
 from carotid.mesh.quality import dihedral_angles, min_dihedral, prism_measures
 from carotid.mesh.smooth import lloyd_smooth
 from carotid.mesh.testing import labelled_bifurcation, labelled_tube
+from carotid.surface.mesh import signed_volume
 
 R, T, N, F = 3.0, 0.6, 10, 1.2  # tube radius, layer thickness (mm), sub-layers, growth ratio
 

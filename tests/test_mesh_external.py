@@ -244,7 +244,7 @@ def test_remeshed_wall_of_the_real_carotid_stl_has_no_needle_left(monkeypatch, p
     from carotid.mesh.command import external_surface, read_surface
     from carotid.mesh.layers import triangle_min_angles
     from carotid.mesh.mesher import median_edge
-    from carotid.mesh.boundary import signed_volume
+    from carotid.surface.mesh import signed_volume
 
     if not polish:
         monkeypatch.setattr(repair, "POLISH_BELOW_DEG", 0.0)

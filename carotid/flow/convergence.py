@@ -159,7 +159,7 @@ def coarsened_mesh_parameters(parameters: dict, factor: float) -> dict:
     f becomes ``f^(N / N')``, so that f'^N' = f^N and the first-layer height T (f' - 1) / (f'^N' - 1)
     scales by (f' - 1) / (f - 1), about N / N' (the rule of :meth:`carotid.flow.verify.TubeSpec.refined`).
     The wall triangles are those of the surface given to :func:`carotid.mesh.mesher.build_mesh`: scale them
-    with :func:`coarsened_surface`.
+    with :func:`carotid.surface.remesh.coarsened_surface`.
 
     Parameters
     ----------
@@ -180,65 +180,6 @@ def coarsened_mesh_parameters(parameters: dict, factor: float) -> dict:
             "thickness": parameters.get("thickness_mm"), "thickness_ratio": parameters.get("thickness_ratio"),
             "size": float(parameters["size_mm"]) * factor, "core": parameters.get("core", "gmsh"),
             "lloyd_iterations": int(parameters.get("lloyd_iterations", 5))}
-
-
-def local_edge_length(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Edge length at each vertex of a triangle surface: the mean length of its edges, averaged once more with
-    its neighbours' (so that one long or short edge does not set it).
-
-    Parameters
-    ----------
-    points : ndarray, shape (n, 3)
-        Vertices, mm.
-    faces : ndarray, shape (m, 3)
-        Triangles.
-
-    Returns
-    -------
-    ndarray, shape (n,)
-        mm (0 at unreferenced vertices).
-    """
-    from carotid.surface.mesh import adjacency, edges_of
-
-    edges, _, _ = edges_of(faces)
-    length = np.linalg.norm(points[edges[:, 0]] - points[edges[:, 1]], axis=1)
-    degree = np.bincount(edges.ravel(), minlength=len(points))
-    own = np.bincount(edges.ravel(), np.repeat(length, 2), minlength=len(points)) / np.maximum(degree, 1)
-    return (adjacency(len(points), faces) @ own + own) / (degree + 1)
-
-
-def coarsened_surface(surface, factor: float, iterations: int = 12):
-    """The lumen surface remeshed with edges ``factor`` times as long as its own (``factor`` < 1: shorter).
-
-    The target edge length at a point is ``factor`` times :func:`local_edge_length` at the nearest vertex of
-    ``surface``, so a surface graded by the local radius stays graded.  The remesher
-    (:func:`carotid.surface.remesh.remesh`, as many rounds as the surface stage gives an external surface)
-    projects the new vertices back onto ``surface``: the wall is the same piecewise-linear lumen, sampled
-    more coarsely, and the caps stay planar, labelled and on their rims.
-
-    Parameters
-    ----------
-    surface : pyvista.PolyData
-        Closed labelled surface (``surface.vtp``: ``CellEntityIds`` wall 1, caps 2, 3, ...), mm.
-    factor : float
-        Edge-length factor, > 0.
-    iterations : int
-        Remeshing rounds.
-
-    Returns
-    -------
-    pyvista.PolyData
-        The remeshed surface, same labels.
-    """
-    from scipy.spatial import cKDTree
-
-    from carotid.surface.mesh import from_polydata
-    from carotid.surface.remesh import remesh
-
-    points, faces, _ = from_polydata(surface)
-    target = factor * local_edge_length(points, faces)
-    tree = cKDTree(points)
-    return remesh(surface, lambda query: target[tree.query(query)[1]], iterations=iterations)
 
 
 def wall_interpolation(wall, query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -372,9 +313,9 @@ def run_convergence(case_dir, params, refinement: float = 1.5, time_levels: bool
 
     Space: level 0 is the case's own mesh (``mesh.vtu``), so that the GCI is the discretisation uncertainty of
     the case's results; levels 1 and 2 are rebuilt from ``surface.vtp`` remeshed with edges ``refinement`` and
-    ``refinement^2`` times as long (:func:`coarsened_surface`: the wall, where WSS is computed, is coarsened
-    with the rest) and meshed with :func:`coarsened_mesh_parameters` of the case mesh's recorded parameters
-    coarsened by the same factors.  Without ``case_mesh`` the three levels are those coarsened by
+    ``refinement^2`` times as long (:func:`carotid.surface.remesh.coarsened_surface`: the wall, where WSS is
+    computed, is coarsened with the rest) and meshed with :func:`coarsened_mesh_parameters` of the case mesh's
+    recorded parameters coarsened by the same factors.  Without ``case_mesh`` the three levels are those coarsened by
     ``refinement``, ``refinement^2`` and ``refinement^3``: the case mesh, finer than all of them, is not run
     (a quarter of the cost or less), and the GCI is then that of level 0, a conservative bound of the case
     mesh's error where the convergence is monotonic and asymptotic.  Each level runs
@@ -389,7 +330,8 @@ def run_convergence(case_dir, params, refinement: float = 1.5, time_levels: bool
     Time (``time_levels``): the coarsest mesh is run again with its time step divided by 2 and 4 (the
     adaptive step's safety factor, or the fixed ``dt``, divided) into ``flow/convergence/level2_dt<d>``, and
     the same per-branch means go through :func:`grid_convergence` with h the mean step of each run (s; the
-    adaptive step halves only about, as it follows the flow): the apparent temporal order, the extrapolation to a zero step and the GCI of the quarter step; each row adds
+    adaptive step halves only about, as it follows the flow): the apparent temporal order, the extrapolation
+    to a zero step and the GCI of the quarter step; each row adds
     ``default_change``, the relative change |phi(dt) / phi(dt/2) - 1| of the study's own step, and
     ``default_e_ext``, its relative distance |phi(dt) / phi_ext - 1| from the extrapolation (the estimated
     temporal error of the coarsest mesh's step, the largest of the study: the steps scale with h).
@@ -441,6 +383,7 @@ def run_convergence(case_dir, params, refinement: float = 1.5, time_levels: bool
     from carotid.mesh.io import write_mesh
     from carotid.mesh.boundary import check_surface
     from carotid.mesh.mesher import build_mesh, median_edge
+    from carotid.surface.remesh import coarsened_surface
 
     if not refinement > 1:
         raise CarotidError(f"--refinement must exceed 1 (got {refinement})")

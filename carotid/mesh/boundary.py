@@ -66,12 +66,6 @@ def edge_faces(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
     return edges, key.ravel(), counts
 
 
-def signed_volume(points: np.ndarray, triangles: np.ndarray) -> float:
-    """Volume (mm^3) enclosed by a closed triangle surface, positive when oriented outward."""
-    a, b, c = (points[triangles[:, k]] for k in range(3))
-    return float(np.einsum("ij,ij->", a, np.cross(b, c)) / 6.0)
-
-
 def orient_outward(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Consistently orient a closed edge-manifold surface, outward in every connected part.
 

@@ -24,13 +24,14 @@ import numpy as np
 import pyvista as pv
 
 from carotid.errors import CarotidError
-from carotid.mesh.boundary import LABELS, cap_open_ends, check_surface, edge_faces, label_flat_caps, signed_volume
+from carotid.mesh.boundary import LABELS, cap_open_ends, check_surface, edge_faces, label_flat_caps
 from carotid.mesh.core import CORES
 from carotid.mesh.io import write_mesh
 from carotid.mesh.mesher import build_mesh, median_edge
 from carotid.mesh.repair import remesh_wall, surface_defects
 from carotid.stages import MeshStageParameters
 from carotid.surface.external import METRES_EXTENT
+from carotid.surface.mesh import signed_volume
 
 
 def read_surface(path: Path) -> pv.PolyData:

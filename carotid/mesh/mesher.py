@@ -8,12 +8,13 @@ import numpy as np
 import pyvista as pv
 
 from carotid.errors import CarotidError
-from carotid.mesh.boundary import LABELS, WALL, Surface, check_surface, signed_volume
+from carotid.mesh.boundary import LABELS, WALL, Surface, check_surface
 from carotid.mesh.core import boundary_faces, face_keys, mesh_core
 from carotid.mesh.layers import BoundaryLayer, build_layers, tet_volumes
 from carotid.mesh.quality import (angle_summary, distribution, extreme_dihedrals, histogram, min_dihedral,
                                   prism_measures, radius_ratio, walk_layers)
 from carotid.mesh.smooth import lloyd_smooth
+from carotid.surface.mesh import signed_volume
 
 LAYER, CORE, BOUNDARY = 0, 1, -1
 """Values of the ``Region`` cell array: layer and core tetrahedra, boundary triangles."""

@@ -44,7 +44,7 @@ from carotid.mesh.boundary import LABELS, WALL, Surface, cap_open_ends, cap_plan
 from carotid.mesh.core import gmsh_session
 from carotid.mesh.layers import inscribed_radius, triangle_min_angles
 from carotid.surface.quality import self_intersections
-from carotid.surface.remesh import remesh
+from carotid.surface.remesh import local_edge_length, remesh
 
 
 def surface_defects(surface: Surface, min_angle_deg: float = 5.0) -> dict:
@@ -209,9 +209,6 @@ def remesh_wall(surface: Surface, size: float) -> pv.PolyData:
     if triangle_min_angles(points, triangles).min() >= POLISH_BELOW_DEG:
         return capped
     # the polish keeps the sizes gmsh reached: the mean length of the edges at the nearest new vertex
-    edges = np.vstack([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
-    length = np.linalg.norm(points[edges[:, 0]] - points[edges[:, 1]], axis=1)
-    mean = np.bincount(edges.ravel(), np.repeat(length, 2), len(points)) / np.bincount(edges.ravel(),
-                                                                                          minlength=len(points))
+    mean = local_edge_length(points, triangles, neighbours=False)
     nearest = cKDTree(points)
     return remesh(capped, lambda x: mean[nearest.query(x)[1]], iterations=POLISH_ROUNDS)

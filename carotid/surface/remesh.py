@@ -7,7 +7,8 @@ move every vertex towards the area-weighted centroid of its triangles in its tan
 it back onto the input surface.  A last round of flips widens the smallest angles (an edge of a triangle
 with an angle below 30 degrees is flipped when that enlarges the smaller of the two triangles' smallest
 angles) without moving any vertex.  ``h`` is a global length or a function of position, e.g. ``k r`` from the
-centerline radius (``radius_size_field``).
+centerline radius (``radius_size_field``) or a multiple of the surface's own local edge length
+(``coarsened_surface``).
 
 Caps and labels are preserved: a vertex is *wall*, *cap* (interior of a cap) or *rim* (on both).  Wall
 vertices are projected onto the input wall, cap vertices onto their cap's plane and rim vertices onto
@@ -35,7 +36,7 @@ from scipy import sparse
 from scipy.spatial import cKDTree
 
 from carotid.centerline.model import Centerlines
-from carotid.surface.mesh import WALL, compact, face_normals, from_polydata, to_polydata
+from carotid.surface.mesh import WALL, adjacency, compact, edges_of, face_normals, from_polydata, to_polydata
 from carotid.surface.project import PolylineProjector, TriangleProjector
 from carotid.surface.quality import triangle_angles
 
@@ -355,6 +356,33 @@ def radius_size_field(centerlines: Centerlines, ratio: float, hmin: float, hmax:
     return size
 
 
+def local_edge_length(points: np.ndarray, faces: np.ndarray, neighbours: bool = True) -> np.ndarray:
+    """Edge length at each vertex of a triangle surface: the mean length of its edges, averaged once more with
+    its neighbours' (so that one long or short edge does not set it).
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+        Vertices, mm.
+    faces : ndarray, shape (m, 3)
+        Triangles.
+    neighbours : bool
+        Average with the neighbours'; if False, the mean length of each vertex's own edges.
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        mm (0 at unreferenced vertices).
+    """
+    edges, _, _ = edges_of(faces)
+    length = np.linalg.norm(points[edges[:, 0]] - points[edges[:, 1]], axis=1)
+    degree = np.bincount(edges.ravel(), minlength=len(points))
+    own = np.bincount(edges.ravel(), np.repeat(length, 2), minlength=len(points)) / np.maximum(degree, 1)
+    if not neighbours:
+        return own
+    return (adjacency(len(points), faces) @ own + own) / (degree + 1)
+
+
 def remesh(surface: pv.PolyData, target: SizeField, *, iterations: int = 10, seed: int = 0) -> pv.PolyData:
     """Isotropic remeshing of a closed, labelled triangle surface to a prescribed edge length.
 
@@ -403,3 +431,30 @@ def remesh(surface: pv.PolyData, target: SizeField, *, iterations: int = 10, see
             break
     return to_polydata(m.v, m.f, m.lab)
 
+
+def coarsened_surface(surface: pv.PolyData, factor: float, iterations: int = 12) -> pv.PolyData:
+    """The surface remeshed with edges ``factor`` times as long as its own (``factor`` < 1: shorter).
+
+    The target edge length at a point is ``factor`` times :func:`local_edge_length` at the nearest vertex of
+    ``surface``, so a surface graded by the local radius stays graded.  :func:`remesh` (as many rounds as the
+    surface stage gives an external surface) projects the new vertices back onto ``surface``: the wall is the
+    same piecewise-linear lumen, sampled more coarsely, and the caps stay planar, labelled and on their rims.
+
+    Parameters
+    ----------
+    surface : pyvista.PolyData
+        Closed labelled surface (``surface.vtp``: ``CellEntityIds`` wall 1, caps 2, 3, ...), mm.
+    factor : float
+        Edge-length factor, > 0.
+    iterations : int
+        Remeshing rounds.
+
+    Returns
+    -------
+    pyvista.PolyData
+        The remeshed surface, same labels.
+    """
+    points, faces, _ = from_polydata(surface)
+    target = factor * local_edge_length(points, faces)
+    tree = cKDTree(points)
+    return remesh(surface, lambda query: target[tree.query(query)[1]], iterations=iterations)
