@@ -55,6 +55,12 @@ dirty.
 Usage (from the repository root)::
 
     .venv/bin/python benchmarks/bench_segmentation.py [--quick] [--cases N]
+    .venv/bin/python benchmarks/bench_segmentation.py --variant deblur_iterations=60 [--variant ...]
+
+``--variant NAME=VALUE[,NAME=VALUE...]`` (repeatable) runs only carotid, with the
+defaults and with each set of ``SegmentParameters`` overrides, on the family
+cases, scored as above, into ``results/segmentation_variants.json``: the sweep
+behind a default.
 
 ``--quick``: 3 family cases, a 128^3 large case timed once, no CTA, two
 analytic tubes (about 4 minutes on 2 cores; the full run about 30).
@@ -75,6 +81,7 @@ from scipy.spatial import cKDTree
 import _vmtk
 from _common import GacSetting, GacStop, git_state, run_gac, timed, write_results
 from carotid.centerline import compute_centerlines
+from carotid.errors import CarotidError
 from carotid.io import Volume, read_image
 from carotid.phantom import make_phantom
 from carotid.phantom.family import sample_family
@@ -158,9 +165,9 @@ def signed_distance_of_mask(mask: np.ndarray, spacing_kji) -> np.ndarray:
 
 # ----------------------------------------------------------------------------------------------- methods
 
-def run_carotid(volume: Volume, seeds) -> dict:
-    """carotid's ``segment`` with default parameters from ``seeds``."""
-    result, seconds = timed(segment, volume, seeds_xyz=seeds, params=SegmentParameters())
+def run_carotid(volume: Volume, seeds, params: SegmentParameters | None = None) -> dict:
+    """carotid's ``segment`` from ``seeds`` with ``params`` (default: the defaults)."""
+    result, seconds = timed(segment, volume, seeds_xyz=seeds, params=params or SegmentParameters())
     return {"levelset": np.asarray(result.levelset.array, np.float32), "mask": result.mask.array > 0,
             "seconds": seconds, "iterations": result.report["iterations"], "converged": result.report["converged"],
             "stage_seconds": result.report["seconds"]}
@@ -540,12 +547,13 @@ def _meets(key: str, value) -> bool:
     return {">=": value >= limit, "<": value < limit, "abs<=": abs(value) <= limit}[op]
 
 
-def summarise(cases: list[dict]) -> dict:
-    """Per method: medians, worst cases, failures and the counts meeting ``CRITERIA``."""
+def summarise(cases: list[dict], methods=METHODS) -> dict:
+    """Per method: medians, worst cases, failures and the counts meeting ``CRITERIA``; with the cases'
+    ``centerline_peer``, VMTK's centerlines against carotid's."""
     keys = ("dice", "surface_mean_mm", "surface_hd95_mm", "surface_max_mm", "leak_fraction", "nascet_error_points",
             "min_diameter_error_mm", "seconds")
     out = {"cases": len(cases), "criteria": {k: f"{op} {v}" for k, (op, v) in CRITERIA.items()}, "methods": {}}
-    for method in METHODS:
+    for method in methods:
         records = [(c["seed"], c["methods"].get(method, {})) for c in cases]
         ok = [(seed, r) for seed, r in records if r.get("status") == "ok"]
         m = {"ok": len(ok), "failed": [{"seed": seed, "error": r.get("error")} for seed, r in records
@@ -570,7 +578,9 @@ def summarise(cases: list[dict]) -> dict:
         out["methods"][method] = m
     out["distance_medians_mm"] = {method: {k: out["methods"][method]["median"].get(k)
                                            for k in ("surface_mean_mm", "surface_max_mm")}
-                                  for method in ("carotid", "gac", "vmtk")}
+                                  for method in out["methods"]}
+    if not all("centerline_peer" in c for c in cases):
+        return out
     # The centerline peer: VMTK's centerlines vs carotid's on the same level sets.
     peer = {}
     for where in ("true_levelset", "carotid_levelset"):
@@ -608,8 +618,54 @@ def summarise(cases: list[dict]) -> dict:
     return out
 
 
+def parse_variant(text: str) -> dict:
+    """``"NAME=VALUE[,NAME=VALUE...]"`` -> ``SegmentParameters`` overrides, typed like the defaults.
+
+    Raises
+    ------
+    SystemExit
+        For a name that is not a parameter, a value of the wrong type, or a value ``validate`` refuses.
+    """
+    defaults = asdict(SegmentParameters())
+    out = {}
+    for item in text.split(","):
+        name, _, value = item.partition("=")
+        if name not in defaults or not value or isinstance(defaults[name], list):
+            raise SystemExit(f"--variant: {item!r} is not NAME=VALUE with NAME a scalar SegmentParameters field")
+        kind = type(defaults[name])
+        try:
+            out[name] = value.lower() in ("1", "true", "yes") if kind is bool else kind(value)
+        except ValueError:
+            raise SystemExit(f"--variant: {item!r}: {name} takes a {kind.__name__}") from None
+    try:
+        SegmentParameters(**out).validate()
+    except CarotidError as error:
+        raise SystemExit(f"--variant {text!r}: {error}") from None
+    return out
+
+
+def run_variants(variants: dict[str, dict], n_cases: int) -> dict:
+    """carotid (one seed per branch) with the defaults and with each variant on the same family cases, scored
+    like the main run: the sweep behind a default, reproducible from the repository."""
+    cases = []
+    for seed in range(n_cases):
+        phantom = make_phantom(**sample_family(seed))
+        volume = phantom.image
+        s = phantom.info["seeds_mm"]
+        seeds = np.array([s["CCA"], s["ICA"], s["ECA"]], float)
+        tg = grade(phantom.sdf.array, phantom.mask.array > 0, phantom.image)
+        case = {"seed": seed, "truth": phantom.info["stenosis"], "truth_graded": tg, "methods": {}}
+        for name, overrides in variants.items():
+            record, run = guarded(name, seed, run_carotid, volume, seeds, SegmentParameters(**overrides))
+            case["methods"][name] = score(run, phantom, tg) if run is not None else record
+            log(f"case {seed:2d} {name}: {brief(case['methods'][name])}")
+        cases.append(case)
+    return {"variants": variants, "cases": cases, "summary": summarise(cases, tuple(variants))}
+
+
 def main() -> None:
-    """Run the benchmark and write ``results/segmentation.json``."""
+    """Run the benchmark and write ``results/segmentation.json`` (``segmentation_variants.json`` with
+    ``--variant``)."""
     import argparse
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -618,7 +674,12 @@ def main() -> None:
     parser.add_argument("--large-only", action="store_true",
                         help="only the 256^3 speed case, against GAC (results/segmentation_large.json): the speed "
                              "target measured on an idle machine without the hour of the whole run")
+    parser.add_argument("--variant", action="append", default=[], metavar="NAME=VALUE[,NAME=VALUE...]",
+                        help="also run carotid with these SegmentParameters overrides (repeatable); only carotid "
+                             "with the defaults and each variant runs, on the family cases, and the results go to "
+                             "results/segmentation_variants.json")
     args = parser.parse_args()
+    variants = {text: parse_variant(text) for text in args.variant}
     n_cases = args.cases if args.cases is not None else (3 if args.quick else 30)
     git = git_state()
     log(f"git {git['commit'][:12]} dirty={git['dirty']}; VMTK available: {_vmtk.vmtk_available()}; "
@@ -628,6 +689,14 @@ def main() -> None:
     warm = make_phantom(0.7, 20.0, 0, extent=(30.0, 30.0, 45.0))
     _, warm_seconds = timed(segment, warm.image, seeds_xyz=[warm.info["seeds_mm"]["CCA"]])
     log(f"warm-up segment (numba compilation) {warm_seconds:.1f} s")
+    if variants:
+        figures = {"git": git, "load_average_at_start": os.getloadavg(),
+                   **run_variants({"defaults": {}, **variants}, n_cases), "load_average_at_end": os.getloadavg()}
+        for name, m in figures["summary"]["methods"].items():
+            log(f"summary {name}: meeting {m['meeting']}; medians "
+                + ", ".join(f"{k} {v:.4g}" for k, v in m["median"].items()))
+        write_results("segmentation_variants", figures, args.quick)
+        return
     if args.large_only:
         load = os.getloadavg()
         large = run_large(args.quick)

@@ -296,3 +296,12 @@ def test_slab_filters_equal_scipy_bit_for_bit(monkeypatch):
         assert np.array_equal(preprocess.maximum_filter(a, size), ndimage.maximum_filter(a, size=size))
     short = preprocess._in_slabs(lambda x: ndimage.gaussian_filter(x, 2.0), a, int(4.0 * 2.0 + 0.5) - 1)
     assert not np.array_equal(short, ndimage.gaussian_filter(a, 2.0))
+
+
+@pytest.mark.parametrize("bad", [{"deblur_iterations": -1}, {"deblur_gain": 0.0}, {"deblur_smooth_mm": -0.5}])
+def test_bad_refinement_parameters_are_refused(bad):
+    from carotid.errors import CarotidError
+    from carotid.segment import SegmentParameters
+
+    with pytest.raises(CarotidError, match="deblur"):
+        SegmentParameters(**bad).validate()

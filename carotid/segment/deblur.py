@@ -19,7 +19,7 @@ image's own blur (``intensity.edge_blur``).  ``B`` varies around the vessel
 it from the image along its wall normal just beyond the blur's reach
 (``normal_background``).  It then descends the least-squares misfit ``|I - M|^2``
 restricted to a band around the wall: the speed of the wall is
-``G_sigma * (I - M) / (A - B)`` (smoothed over ``SMOOTH_MM``), positive (outward) where the image is
+``G_sigma * (I - M) / (A - B)`` (smoothed over ``smooth_mm`` more), positive (outward) where the image is
 brighter than the model.  The displacement is bounded by one blur width
 from the front the evolution converged to, so the refinement corrects a
 position and never changes what the front captured; voxels where a
@@ -37,12 +37,8 @@ from scipy import ndimage
 
 from carotid.segment.intensity import local_level, region_box
 
-# Scale (mm) of the extra smoothing of the wall's speed: the model corrects a position, not the noise.
-SMOOTH_MM = 1.0
-
-
 def refine(image: np.ndarray, phi: np.ndarray, spacing_kji, lumen, background: float, blur_mm: float,
-           exclude: np.ndarray | None = None, iterations: int = 20, gain: float = 2.0,
+           exclude: np.ndarray | None = None, iterations: int = 20, gain: float = 2.0, smooth_mm: float = 1.0,
            normal: bool = True) -> np.ndarray:
     """Level set moved to the wall that best explains the image under a Gaussian blur.
 
@@ -66,6 +62,8 @@ def refine(image: np.ndarray, phi: np.ndarray, spacing_kji, lumen, background: f
         Gradient steps.
     gain : float
         Step length in blur widths per unit of normalised misfit.
+    smooth_mm : float
+        Extra Gaussian smoothing (mm) of the wall's speed: the model corrects a position, not the noise.
     normal : bool
         Take the tissue level along each wall normal (``normal_background``); False keeps the shell's
         smoothed mean (``local_background``) everywhere.
@@ -94,7 +92,7 @@ def refine(image: np.ndarray, phi: np.ndarray, spacing_kji, lumen, background: f
         tissue = normal_background(crop, phi0, spacing, sigma_mm, excluded, tissue)
     contrast = np.maximum(level - tissue, np.float32(1e-6))
     sigma = sigma_mm / spacing
-    smoothing = np.hypot(sigma_mm, SMOOTH_MM) / spacing
+    smoothing = np.hypot(sigma_mm, smooth_mm) / spacing
     ramp = np.float32(spacing.min())
     step = np.float32(gain * sigma_mm)
     seen_tissue = ndimage.gaussian_filter(tissue, sigma)

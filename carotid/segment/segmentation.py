@@ -87,6 +87,9 @@ class SegmentParameters:
         Move the converged front to the wall of the blurred lumen model that best explains the image
         (``deblur`` module): an edge-based front lies inside a straight vessel's wall and outside a short,
         tight stenosis's by about the blur squared times the wall's curvature.
+    deblur_iterations, deblur_gain, deblur_smooth_mm : int, float, float
+        Gradient steps of that refinement, the step in blur widths per unit of normalised misfit, and the
+        extra Gaussian smoothing (mm) of the wall's speed (``deblur.refine``).
     denoise_iterations : int
         Curvature anisotropic diffusion iterations before the potential (0: off).
     kernel_radius_mm : float
@@ -151,6 +154,9 @@ class SegmentParameters:
     chamber_reach_mm: float = 20.0
     half_maximum: float = 0.5
     deblur: bool = True
+    deblur_iterations: int = 20
+    deblur_gain: float = 2.0
+    deblur_smooth_mm: float = 1.0
     denoise_iterations: int = 0
     kernel_radius_mm: float = 10.0
     sigma_mm: float = 0.6
@@ -210,6 +216,8 @@ class SegmentParameters:
             (0 < self.cfl < 1, "cfl must lie in (0, 1)"),
             (self.max_iterations > 0, "max_iterations must be positive"),
             (self.denoise_iterations >= 0, "denoise_iterations must not be negative"),
+            (self.deblur_iterations >= 0 and self.deblur_gain > 0 and self.deblur_smooth_mm >= 0,
+             "deblur_iterations and deblur_smooth_mm must not be negative, deblur_gain must be positive"),
             (self.wall_hu_low < self.wall_contrast_hu and (
                 self.wall_hu_high == 0 or self.wall_hu_low < self.wall_hu_high < self.wall_contrast_hu),
              "wall_hu_low < wall_hu_high (0: measured) < wall_contrast_hu required"),
@@ -319,7 +327,8 @@ def deblur(image: np.ndarray, phi: np.ndarray, spacing_kji, model: IntensityMode
     exclude = stopped
     if dense is not None:
         exclude = dense if exclude is None else exclude | dense
-    return refine(image, phi, spacing_kji, lumen, model.background, model.blur, exclude)
+    return refine(image, phi, spacing_kji, lumen, model.background, model.blur, exclude,
+                  iterations=params.deblur_iterations, gain=params.deblur_gain, smooth_mm=params.deblur_smooth_mm)
 
 
 def chambers(phi: np.ndarray, image01: np.ndarray, window, model: IntensityModel, spacing_kji,
