@@ -32,8 +32,12 @@ seconds; NASCET error (percentage points) = NASCET graded by
 way on the true level set; minimal-diameter error (mm) = the graded minimal
 ICA diameter minus the phantom's analytic one (both None, and the case not
 counted as meeting those criteria, when the method's centerlines have no
-branch labelled ICA).  A method that raises is recorded as failed for that
-case (error string kept).
+branch labelled ICA).  The minimal diameter is graded on chords through the
+axis (``axes.section_profile``); the same two errors graded on the distance
+from the axis to the nearest wall (``through_axis=False``, the definition
+before chords) are recorded beside them (``*_half_width``) and counted in the
+summary's ``half_width_grading``.  A method that raises is recorded as failed
+for that case (error string kept).
 
 Centerline peer: VMTK's own centerlines (``_vmtk.run_vmtk_centerlines``,
 graded by ``_vmtk.vmtk_nascet``) on the true level set and on carotid's
@@ -80,7 +84,8 @@ from scipy.spatial import cKDTree
 
 import _vmtk
 from _common import GacSetting, GacStop, git_state, run_gac, timed, write_results
-from carotid.centerline import compute_centerlines
+from carotid.centerline import Branch, compute_centerlines, stenosis
+from carotid.centerline.axes import section_profile, section_radii
 from carotid.errors import CarotidError
 from carotid.io import Volume, read_image
 from carotid.phantom import make_phantom
@@ -214,9 +219,22 @@ def grade(levelset: np.ndarray, mask: np.ndarray, grid: Volume) -> dict:
     s = cl.info["stenosis"]
     if s is None:
         return {"graded_branch": None, "nascet": None, "min_diameter_mm": None, "centerline_seconds": seconds}
-    return {"graded_branch": s["branch"], "nascet": s["nascet"], "min_diameter_mm": s["min_diameter_mm"],
-            "distal_diameter_mm": s["distal_diameter_mm"], "centerline_seconds": seconds,
-            "branches": [b.name for b in cl.branches]}
+    out = {"graded_branch": s["branch"], "nascet": s["nascet"], "min_diameter_mm": s["min_diameter_mm"],
+           "distal_diameter_mm": s["distal_diameter_mm"], "centerline_seconds": seconds,
+           "branches": [b.name for b in cl.branches]}
+    if s["branch"] == "ICA":
+        out.update(half_width_grade(cl.branch("ICA"), grid.with_array(np.asarray(levelset, np.float32))))
+    return out
+
+
+def half_width_grade(ica, levelset: Volume) -> dict:
+    """The ICA graded with the narrow radius taken from the axis point to the nearest wall
+    (``section_profile(through_axis=False)``) instead of half the narrowest chord through it: the
+    comparison of the two definitions on the same centerlines."""
+    median, narrow = section_profile(section_radii(levelset, ica.points, ica.radii), through_axis=False)
+    g = stenosis(Branch(ica.name, ica.points, ica.radii, ica.areas, median, narrow))
+    return {"nascet_half_width": g["nascet"] if g else None, "min_diameter_mm_half_width": g["min_diameter_mm"] if g
+            else None}
 
 
 def score(run: dict, phantom, truth_grade: dict) -> dict:
@@ -248,6 +266,9 @@ def score(run: dict, phantom, truth_grade: dict) -> dict:
     out["nascet_error_points"] = (None if g["nascet"] is None or truth_grade.get("nascet") is None
                                   else 100.0 * (g["nascet"] - truth_grade["nascet"]))
     out["min_diameter_error_mm"] = None if g["min_diameter_mm"] is None else g["min_diameter_mm"] - true_min
+    if g.get("nascet_half_width") is not None and truth_grade.get("nascet_half_width") is not None:
+        out["nascet_error_points_half_width"] = 100.0 * (g["nascet_half_width"] - truth_grade["nascet_half_width"])
+        out["min_diameter_error_mm_half_width"] = g["min_diameter_mm_half_width"] - true_min
     return out
 
 
@@ -575,6 +596,14 @@ def summarise(cases: list[dict], methods=METHODS) -> dict:
             m["meeting"][key] = int(sum(_meets(key, r.get(key)) for _, r in records if r.get("status") == "ok"))
         m["meeting"]["all_four"] = int(sum(all(_meets(k, r.get(k)) for k in CRITERIA) for _, r in records
                                            if r.get("status") == "ok"))
+        half = [(r.get("nascet_error_points_half_width"), r.get("min_diameter_error_mm_half_width"))
+                for _, r in ok if r.get("nascet_error_points_half_width") is not None]
+        if half:
+            e, d = np.abs(np.array(half, float)).T
+            m["half_width_grading"] = {"graded": len(half), "nascet_within_5_points": int(np.sum(e <= 5.0)),
+                                       "min_diameter_within_0.25_mm": int(np.sum(d <= 0.25)),
+                                       "worst_nascet_error_points": float(e.max()),
+                                       "worst_min_diameter_error_mm": float(d.max())}
         out["methods"][method] = m
     out["distance_medians_mm"] = {method: {k: out["methods"][method]["median"].get(k)
                                            for k in ("surface_mean_mm", "surface_max_mm")}

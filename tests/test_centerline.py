@@ -146,6 +146,25 @@ def test_section_radii_of_a_tilted_elliptic_tube():
     assert 1.2 < exact_narrow[0] < 1.3
 
 
+@pytest.mark.parametrize("offset", [0.15, 0.3])
+def test_the_narrow_radius_does_not_depend_on_where_the_axis_lies(offset):
+    """Rays cast from points ``offset`` mm off the axis of a round tube (radius 2 mm, 0.3 mm voxels): half the
+    narrowest chord through the point is the radius to second order, sqrt(R^2 - e^2) at worst (1.98 mm for
+    e = 0.3), read within 0.03 mm; the distance to the nearest wall (mutation ``through_axis=False``) reads
+    about R - e."""
+    radius = 2.0
+    vol, xyz = grid((30, 24, 24), (0.3, 0.3, 0.3), origin=(-3.45, -3.45, -4.35))
+    tube = vol.with_array((np.hypot(xyz[:, 0], xyz[:, 1]) - radius).reshape(vol.array.shape).astype(np.float32))
+    points = np.stack([np.full(9, offset), np.zeros(9), np.linspace(-1.0, 1.0, 9)], axis=1)
+    rays = section_radii(tube, points, np.full(9, radius - offset))
+    _, chord = section_profile(rays)
+    _, nearest = section_profile(rays, through_axis=False)
+    assert np.abs(chord - radius).max() < 0.03
+    assert np.all(nearest < radius - 0.8 * offset)
+    with pytest.raises(ValueError, match="even"):
+        section_profile(rays[:, :-1])
+
+
 def lumpy_stenosis(amplitude):
     """A tube of radius 2.5 mm along z with a raised-cosine stenosis of depth 0.5 (L = 4 R) whose wall carries
     bumps and dents of ``amplitude`` mm (eight lobes around, a 2.5 mm wavelength along): the level set."""

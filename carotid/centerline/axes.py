@@ -161,7 +161,7 @@ def section_areas(levelset: Volume, points: np.ndarray, radii: np.ndarray, step:
 SECTION_RAYS = 36
 """Rays per section of :func:`section_radii` (every 10 degrees)."""
 NARROW_ARC_DEG = 90.0
-"""Arc over which :func:`section_profile` takes the running median before the narrowest half-width."""
+"""Arc over which :func:`section_profile` takes the running median before the narrowest width."""
 
 
 def section_radii(levelset: Volume, points: np.ndarray, radii: np.ndarray, n_rays: int = SECTION_RAYS,
@@ -216,8 +216,9 @@ def section_radii(levelset: Volume, points: np.ndarray, radii: np.ndarray, n_ray
     return out
 
 
-def section_profile(rays: np.ndarray, arc_deg: float = NARROW_ARC_DEG) -> tuple[np.ndarray, np.ndarray]:
-    """The median radius and the narrowest half-width of each section, robust to the roughness of the wall.
+def section_profile(rays: np.ndarray, arc_deg: float = NARROW_ARC_DEG,
+                    through_axis: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """The median radius and half the narrowest width of each section, robust to the roughness of the wall.
 
     A segmented wall is never smooth: noise and the grid leave bumps and dents of 0.1-0.3 mm over an arc of
     a millimetre or two, and the maximal inscribed sphere, which touches the deepest dent, reads that much
@@ -226,16 +227,23 @@ def section_profile(rays: np.ndarray, arc_deg: float = NARROW_ARC_DEG) -> tuple[
 
     * the median radius, the median of ``r(theta)``, is the radius of a round vessel, whatever its bumps and
       dents and whatever branch leaves through the section;
-    * the narrowest half-width is the smallest value of the running median of ``r(theta)`` over ``arc_deg``
-      (circular): a dent narrower than half that arc is ignored, an elliptic or eccentric lumen still reads
-      its narrow side.
+    * the narrow radius is half the narrowest diameter: the smallest value of the running median, over
+      ``arc_deg`` (circular), of the chord through the axis point, ``(r(theta) + r(theta + pi)) / 2``.  A
+      dent narrower than half that arc is ignored; an elliptic lumen reads its minor semi-axis.  The chord
+      does not depend, to first order, on where the axis point lies in the section: an axis ``e`` mm off
+      the centre of a round lumen of radius ``R`` reads ``R - O(e^2 / R)``, where the half-width from the
+      axis point to the nearest wall (``through_axis=False``) reads ``R - e``.  Axes of a stenosis's
+      throat are off its centre by 0.1-0.3 mm (their smoothing and the throat's eccentric plaque), which
+      took that much off the graded minimal diameter.
 
     Parameters
     ----------
     rays : ndarray, shape (n, m)
-        Wall distances along ``m`` rays evenly spaced in angle, mm.
+        Wall distances along ``m`` rays evenly spaced in angle, mm; ``m`` even for the chords.
     arc_deg : float
         Arc of the running median, degrees.
+    through_axis : bool
+        Half the chord through the axis point (default); False: the distance from the axis point.
 
     Returns
     -------
@@ -243,8 +251,12 @@ def section_profile(rays: np.ndarray, arc_deg: float = NARROW_ARC_DEG) -> tuple[
         mm.
     """
     rays = np.asarray(rays, float)
-    width = max(int(round(arc_deg / 360.0 * rays.shape[1])) | 1, 1)
-    running = ndimage.median_filter(rays, size=(1, width), mode="wrap")
+    m = rays.shape[1]
+    if through_axis and m % 2:
+        raise ValueError(f"chords through the axis need an even number of rays (got {m})")
+    width = 0.5 * (rays + np.roll(rays, m // 2, axis=1)) if through_axis else rays
+    span = max(int(round(arc_deg / 360.0 * m)) | 1, 1)
+    running = ndimage.median_filter(width, size=(1, span), mode="wrap")
     return np.median(rays, axis=1), running.min(axis=1)
 
 

@@ -7,7 +7,7 @@ smoothing along the arc length, recentring on the maximal inscribed sphere,
 trimming of capped ends and straightening of ends cut by the image border ->
 the bifurcation where the daughter axes leave the trunk -> radius of the
 maximal inscribed sphere at each point (distance to the zero level set of the
-level set, see ``axes``), area, median radius and narrowest half-width of the
+level set, see ``axes``), area, median radius and half the narrowest diameter of the
 section normal to the axis -> features (``features``).  All geometry is in mm
 in the image's physical frame (spacing, origin and direction honoured), so
 anisotropic voxels need no special care beyond the thinning itself, which is

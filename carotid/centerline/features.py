@@ -3,8 +3,8 @@
 Every branch's points run with the flow (CCA: inlet to bifurcation; the
 others: bifurcation outward), so "distal" is "further along the points".
 
-Stenosis grading, on two radius profiles of a branch: the narrowest
-half-width r(s) of each section for the residual lumen, and the median
+Stenosis grading, on two radius profiles of a branch: half the narrowest
+diameter r(s) of each section (chords through the axis) for the residual lumen, and the median
 radius m(s) of each section for the vessel's own size (both robust to the
 wall's roughness, ``axes.section_profile``; the inscribed-sphere radius
 stands for both on centerlines that carry neither).  Diameters are twice
@@ -107,7 +107,8 @@ def local_healthy_radius(s: np.ndarray, r: np.ndarray, reach: float) -> np.ndarr
 
 
 def grading_profiles(branch: Branch) -> tuple[np.ndarray, np.ndarray]:
-    """The two radius profiles of the stenosis grading: narrowest half-width and median radius (n,), mm.
+    """The two radius profiles of the stenosis grading: half the narrowest diameter and the median radius (n,),
+    mm.
 
     ``branch.narrow_radii`` and ``branch.median_radii`` where the centerlines carry them, else the inscribed
     radius for both.

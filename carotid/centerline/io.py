@@ -4,7 +4,7 @@ The VTP holds one polyline cell per branch, in mm, with the point array
 ``MaximumInscribedSphereRadius`` (mm), ``CenterlineSectionArea`` (mm^2, as
 VMTK's ``vmtkcentersections``), ``CenterlineSectionMedianRadius`` and
 ``CenterlineSectionNarrowRadius`` (mm, the section's median radius and
-narrowest half-width, ``axes.section_profile``) and the cell arrays ``BranchId`` (int)
+half its narrowest diameter, ``axes.section_profile``) and the cell arrays ``BranchId`` (int)
 and ``BranchName`` (string), so ParaView and VMTK scripts read it as they
 read VMTK's own centerlines.
 """

@@ -26,7 +26,7 @@ class Branch:
     areas : ndarray, shape (n,), optional
         Area of the lumen section normal to the axis at each point, mm^2 (``axes.section_areas``).
     median_radii, narrow_radii : ndarray, shape (n,), optional
-        Median radius and narrowest half-width of the section normal to the axis at each point, mm
+        Median radius and half the narrowest diameter of the section normal to the axis at each point, mm
         (``axes.section_profile``): the stenosis grading's robust measures of a rough wall.
     """
 

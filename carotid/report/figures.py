@@ -338,7 +338,7 @@ def diameter_profile(s: np.ndarray, narrow: np.ndarray, median: np.ndarray, sten
         Arc length, mm (0 at the bifurcation).
     narrow, median : ndarray, shape (n,)
         The two diameters the stenosis is graded on (``carotid.centerline.features.grading_profiles``): twice
-        the narrowest half-width of each section (the residual lumen) and twice its median radius (the
+        half the narrowest diameter of each section (the residual lumen) and twice its median radius (the
         vessel), mm.
     stenosis : dict, optional
         ``geometry.json``'s stenosis: ``arclength_from_bifurcation_mm``, ``min_diameter_mm``,
