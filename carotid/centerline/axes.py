@@ -233,8 +233,8 @@ def section_profile(rays: np.ndarray, arc_deg: float = NARROW_ARC_DEG,
       does not depend, to first order, on where the axis point lies in the section: an axis ``e`` mm off
       the centre of a round lumen of radius ``R`` reads ``R - O(e^2 / R)``, where the half-width from the
       axis point to the nearest wall (``through_axis=False``) reads ``R - e``.  Axes of a stenosis's
-      throat are off its centre by 0.1-0.3 mm (their smoothing and the throat's eccentric plaque), which
-      took that much off the graded minimal diameter.
+      throat lie 0.1-0.3 mm off its centre (their smoothing, the throat's eccentric plaque): the distance
+      to the nearest wall would take that much off the graded minimal diameter.
 
     Parameters
     ----------
