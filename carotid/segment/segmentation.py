@@ -87,9 +87,13 @@ class SegmentParameters:
         Move the converged front to the wall of the blurred lumen model that best explains the image
         (``deblur`` module): an edge-based front lies inside a straight vessel's wall and outside a short,
         tight stenosis's by about the blur squared times the wall's curvature.
-    deblur_iterations, deblur_gain, deblur_smooth_mm : int, float, float
-        Gradient steps of that refinement, the step in blur widths per unit of normalised misfit, and the
-        extra Gaussian smoothing (mm) of the wall's speed (``deblur.refine``).
+    deblur_iterations : int
+        Gradient steps of that refinement (``deblur.refine``): more narrow a short, tight throat further but
+        let the image's noise roughen the wall (``benchmarks/README.md``, ``--variant``).
+    deblur_gain : float
+        Its step length, in blur widths per unit of normalised misfit.
+    deblur_smooth_mm : float
+        Extra Gaussian smoothing (mm) of the wall's speed in that refinement.
     denoise_iterations : int
         Curvature anisotropic diffusion iterations before the potential (0: off).
     kernel_radius_mm : float
