@@ -100,14 +100,16 @@ class SegmentParameters:
         Support of the GPF kernel in mm (padding is at least as wide).
     sigma_mm : float
         Gaussian pre-smoothing folded into the kernel spectrum, in mm.
-    refine_radius_mm, refine_sigma_mm, refine_alpha : float
-        The same three for a second, refining stage started from the converged
-        front (``refine_radius_mm = 0`` skips it).  A long kernel gives the
-        capture range the GPF is known for, but on a curved, blurred wall its
-        zero crossing lies outside the wall by about
-        ``s^2 ln(R_eff / s) kappa`` (s the blur, R_eff the smaller of the
-        kernel radius and the vessel radius); a short kernel and a little more
-        curvature cut that bias by about half.
+    refine_radius_mm : float
+        GPF kernel support (mm) of a second, refining stage started from the converged front (0 skips it).
+        A long kernel gives the capture range the GPF is known for, but on a curved, blurred wall its zero
+        crossing lies outside the wall by about ``s^2 ln(R_eff / s) kappa`` (s the blur, R_eff the smaller
+        of the kernel radius and the vessel radius); a short kernel and a little more curvature cut that
+        bias by about half.
+    refine_sigma_mm : float
+        Gaussian pre-smoothing (mm) of the refining stage.
+    refine_alpha : float
+        Curvature weight of the refining stage, 0 <= alpha < 1.
     potential_scale : float
         Saturation scale of the potential in window units per mm:
         ``Ghat = tanh(G / potential_scale)``.
@@ -125,9 +127,10 @@ class SegmentParameters:
         Distances beyond this are clamped in the output level set, in mm.
     wall : bool
         Also segment the whole vessel (lumen, non-enhancing thrombus, wall) from the lumen (``wall`` module).
-    wall_hu_low, wall_hu_high : float
-        HU window of the outer-wall stage, clipped: fat and lung at or below ``wall_hu_low``; thrombus and
-        wall at ``wall_hu_high``, which 0 measures in a ring 1.5-4.5 mm outside the lumen.
+    wall_hu_low : float
+        Bottom (HU) of the outer-wall stage's clipped window: fat and lung at or below it.
+    wall_hu_high : float
+        Top (HU) of that window, thrombus and wall; 0 measures it in a ring 1.5-4.5 mm outside the lumen.
     wall_level_mm : float
         Gaussian (mm) over which that level is measured locally; 0: one level, the ring's median.
     wall_contrast_hu : float
@@ -138,8 +141,10 @@ class SegmentParameters:
         GPF kernel support of the outer-wall stage, mm: its capture range across thrombus.
     wall_max_mm : float
         Largest thickness of thrombus and wall beyond the lumen, mm.
-    wall_close_mm, wall_open_mm : float
-        Radii (mm) of the closing and opening of the outer-wall region by a ball, 0: none.
+    wall_close_mm : float
+        Radius (mm) of the ball closing the outer-wall region, 0: none.
+    wall_open_mm : float
+        Radius (mm) of the ball opening it after the closing, 0: none.
     wall_trunk_mm : float
         Keep only the vessel's trunk: what lies within this margin (mm) of the balls along its main axis
         (``wall.trunk``; for the aorta, without its branches).  0: off.
