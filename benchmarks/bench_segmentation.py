@@ -72,6 +72,7 @@ analytic tubes (about 4 minutes on 2 cores; the full run about 30).
 
 from __future__ import annotations
 
+import argparse
 import os
 import time
 import traceback
@@ -214,8 +215,8 @@ def run_threshold(volume: Volume, seeds, threshold: float) -> dict:
 
 def grade(levelset: np.ndarray, mask: np.ndarray, grid: Volume) -> dict:
     """carotid's centerlines and stenosis grading on a level set (and its mask) on ``grid``."""
-    cl, seconds = timed(compute_centerlines, grid.with_array(np.asarray(levelset, np.float32)),
-                        grid.with_array(np.asarray(mask, np.uint8)))
+    levelset = grid.with_array(np.asarray(levelset, np.float32))
+    cl, seconds = timed(compute_centerlines, levelset, grid.with_array(np.asarray(mask, np.uint8)))
     s = cl.info["stenosis"]
     if s is None:
         return {"graded_branch": None, "nascet": None, "min_diameter_mm": None, "centerline_seconds": seconds}
@@ -223,7 +224,7 @@ def grade(levelset: np.ndarray, mask: np.ndarray, grid: Volume) -> dict:
            "distal_diameter_mm": s["distal_diameter_mm"], "centerline_seconds": seconds,
            "branches": [b.name for b in cl.branches]}
     if s["branch"] == "ICA":
-        out.update(half_width_grade(cl.branch("ICA"), grid.with_array(np.asarray(levelset, np.float32))))
+        out.update(half_width_grade(cl.branch("ICA"), levelset))
     return out
 
 
@@ -648,28 +649,30 @@ def summarise(cases: list[dict], methods=METHODS) -> dict:
 
 
 def parse_variant(text: str) -> dict:
-    """``"NAME=VALUE[,NAME=VALUE...]"`` -> ``SegmentParameters`` overrides, typed like the defaults.
+    """``"NAME=VALUE[,NAME=VALUE...]"`` -> ``SegmentParameters`` overrides, typed like the defaults (the
+    ``type`` of ``--variant``).
 
     Raises
     ------
-    SystemExit
-        For a name that is not a parameter, a value of the wrong type, or a value ``validate`` refuses.
+    argparse.ArgumentTypeError
+        For a name that is not a parameter, a value of the wrong type, or a value ``validate`` refuses
+        (argparse then prints one line and exits with status 2).
     """
     defaults = asdict(SegmentParameters())
     out = {}
     for item in text.split(","):
         name, _, value = item.partition("=")
         if name not in defaults or not value or isinstance(defaults[name], list):
-            raise SystemExit(f"--variant: {item!r} is not NAME=VALUE with NAME a scalar SegmentParameters field")
+            raise argparse.ArgumentTypeError(f"{item!r} is not NAME=VALUE with NAME a scalar SegmentParameters field")
         kind = type(defaults[name])
         try:
             out[name] = value.lower() in ("1", "true", "yes") if kind is bool else kind(value)
         except ValueError:
-            raise SystemExit(f"--variant: {item!r}: {name} takes a {kind.__name__}") from None
+            raise argparse.ArgumentTypeError(f"{item!r}: {name} takes a {kind.__name__}") from None
     try:
         SegmentParameters(**out).validate()
     except CarotidError as error:
-        raise SystemExit(f"--variant {text!r}: {error}") from None
+        raise argparse.ArgumentTypeError(f"{text!r}: {error}") from None
     return out
 
 
@@ -695,20 +698,19 @@ def run_variants(variants: dict[str, dict], n_cases: int) -> dict:
 def main() -> None:
     """Run the benchmark and write ``results/segmentation.json`` (``segmentation_variants.json`` with
     ``--variant``)."""
-    import argparse
-
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="3 family cases, a 128^3 large case, no CTA")
     parser.add_argument("--cases", type=int, default=None, help="number of family cases (seeds 0..N-1; default 30)")
     parser.add_argument("--large-only", action="store_true",
                         help="only the 256^3 speed case, against GAC (results/segmentation_large.json): the speed "
                              "target measured on an idle machine without the hour of the whole run")
-    parser.add_argument("--variant", action="append", default=[], metavar="NAME=VALUE[,NAME=VALUE...]",
+    parser.add_argument("--variant", action="append", default=[], type=parse_variant,
+                        metavar="NAME=VALUE[,NAME=VALUE...]",
                         help="also run carotid with these SegmentParameters overrides (repeatable); only carotid "
                              "with the defaults and each variant runs, on the family cases, and the results go to "
                              "results/segmentation_variants.json")
     args = parser.parse_args()
-    variants = {text: parse_variant(text) for text in args.variant}
+    variants = {",".join(f"{k}={v}" for k, v in overrides.items()): overrides for overrides in args.variant}
     n_cases = args.cases if args.cases is not None else (3 if args.quick else 30)
     git = git_state()
     log(f"git {git['commit'][:12]} dirty={git['dirty']}; VMTK available: {_vmtk.vmtk_available()}; "

@@ -254,9 +254,9 @@ def section_profile(rays: np.ndarray, arc_deg: float = NARROW_ARC_DEG,
     m = rays.shape[1]
     if through_axis and m % 2:
         raise ValueError(f"chords through the axis need an even number of rays (got {m})")
-    width = 0.5 * (rays + np.roll(rays, m // 2, axis=1)) if through_axis else rays
+    reach = 0.5 * (rays + np.roll(rays, m // 2, axis=1)) if through_axis else rays  # half-chords or rays
     span = max(int(round(arc_deg / 360.0 * m)) | 1, 1)
-    running = ndimage.median_filter(width, size=(1, span), mode="wrap")
+    running = ndimage.median_filter(reach, size=(1, span), mode="wrap")
     return np.median(rays, axis=1), running.min(axis=1)
 
 
