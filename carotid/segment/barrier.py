@@ -25,7 +25,9 @@ the force is set to push the front out, keep it in the lumen:
 * ``chamber_cores``: a cavity as bright as the lumen and joined to it without
   any gap (a heart chamber behind an open valve) is told by its size: where the
   captured region is much wider than the vessel at the seeds, its core becomes
-  a marker of that same watershed, which cuts at the darkest surface between.
+  a marker of that same watershed, which cuts at the darkest surface between;
+  ``chamber_neck`` moves that cut back to the narrowest section within a
+  vessel radius (an open valve's annulus), where nothing darker marks it.
 
 A gap whose blurred intensity stays above half of its bright neighbours, to a
 neighbour as bright as the lumen, is not seen by any of them: that limit is
@@ -222,8 +224,6 @@ def chamber_cores(region: np.ndarray, seeds_kji: np.ndarray, spacing_kji, ratio:
     radius : float
         ``R`` in mm (0 for an empty region).
     """
-    from skimage.graph import MCP_Geometric
-
     spacing_kji = np.asarray(spacing_kji, float)
     cores = np.zeros(region.shape, bool)
     vessel = np.zeros(region.shape, bool)
@@ -232,11 +232,7 @@ def chamber_cores(region: np.ndarray, seeds_kji: np.ndarray, spacing_kji, ratio:
         return cores, vessel, 0.0
     sub = ndimage.binary_fill_holes(region[box])  # holes in a cavity (noise, trabeculae) are not its wall
     depth = ndimage.distance_transform_edt(sub, sampling=spacing_kji)
-    nearest = ndimage.distance_transform_edt(~sub, return_distances=False, return_indices=True)
-    offset = np.array([s.start for s in box])
-    idx = np.clip(np.round(np.atleast_2d(seeds_kji)).astype(int) - offset, 0, np.asarray(sub.shape) - 1)
-    starts = {tuple(int(nearest[a][tuple(i)]) for a in range(3)) for i in idx}
-    geodesic, _ = MCP_Geometric(np.where(sub, 1.0, np.inf), sampling=tuple(spacing_kji)).find_costs(list(starts))
+    geodesic = _geodesic(sub, np.atleast_2d(seeds_kji) - np.array([s.start for s in box]), spacing_kji)
     near = geodesic <= reach_mm
     radius = float(depth[near].max()) if near.any() else 0.0
     core = (depth > ratio * radius) & np.isfinite(geodesic)
@@ -247,6 +243,79 @@ def chamber_cores(region: np.ndarray, seeds_kji: np.ndarray, spacing_kji, ratio:
     cores[box] = core
     vessel[box] = np.isfinite(geodesic) & (geodesic < float(geodesic[body].min()) - radius)
     return cores, vessel, radius
+
+
+def chamber_neck(region: np.ndarray, chamber: np.ndarray, seeds_kji: np.ndarray, spacing_kji,
+                 margin_mm: float) -> np.ndarray:
+    """A chamber cut from its vessel at the narrowest section between them rather than at the darkest one.
+
+    The watershed on the image (``competing_region``) cuts a chamber from its vessel along the darkest
+    surface between them: a closed valve, a gap.  Behind an open valve the blood is uniformly bright, that
+    surface can lie anywhere between the valve and the cavity, and the outflow tract before it stays on the
+    vessel's side.  A cavity joins its vessel at a neck (a valve's annulus, an aneurysm's neck), where the
+    captured region is narrowest.  A marker-based watershed (scikit-image) on the inscribed radius, the
+    negated distance to the region's boundary, grows the chamber and the vessel more than ``margin_mm``
+    from it (measured through the region from the seeds) together, deepest voxels first; they meet at the
+    narrowest section in between.  The chamber only grows, by at most ``margin_mm`` of vessel.
+
+    Parameters
+    ----------
+    region : ndarray of bool, shape (nk, nj, ni)
+        The captured lumen.
+    chamber : ndarray of bool, same shape
+        What the image's watershed gave the chamber (part of ``region``).
+    seeds_kji : ndarray, shape (m, 3)
+        Continuous array indices of the seeds.
+    spacing_kji : array_like, shape (3,)
+        Voxel size in mm.
+    margin_mm : float
+        Length of vessel (mm, through the region) before the chamber within which the cut may move.
+
+    Returns
+    -------
+    ndarray of bool, shape of ``region``
+        The chamber, grown to the neck.
+    """
+    from skimage.segmentation import watershed
+
+    spacing_kji = np.asarray(spacing_kji, float)
+    box = region_box(region, spacing_kji, float(spacing_kji.max()))
+    if box is None or not chamber[box].any():
+        return chamber
+    filled = ndimage.binary_fill_holes(region[box])
+    own = chamber[box]
+    vessel = filled & ~own
+    geodesic = _geodesic(vessel, np.atleast_2d(seeds_kji) - np.array([s.start for s in box]), spacing_kji)
+    touching = ndimage.binary_dilation(own) & np.isfinite(geodesic)
+    if not touching.any():
+        return chamber
+    markers = np.where(own, np.int32(2), np.int32(0))
+    markers[geodesic < float(geodesic[touching].min()) - margin_mm] = 1
+    depth = ndimage.distance_transform_edt(filled, sampling=spacing_kji)
+    out = chamber.copy()
+    out[box] |= (watershed(-depth, markers, mask=filled) == 2) & region[box]
+    return out
+
+
+def _geodesic(region: np.ndarray, seeds_kji: np.ndarray, spacing_kji: np.ndarray) -> np.ndarray:
+    """Distance (mm) through ``region`` from the region's voxels nearest the seeds (scikit-image's
+    ``MCP_Geometric``); inf outside the region and where it is not connected to a seed.
+
+    Parameters
+    ----------
+    region : ndarray of bool, shape (nk, nj, ni)
+    seeds_kji : ndarray, shape (m, 3)
+        Continuous array indices of the seeds in ``region``'s grid (clipped to it).
+    spacing_kji : ndarray, shape (3,)
+        Voxel size in mm.
+    """
+    from skimage.graph import MCP_Geometric
+
+    nearest = ndimage.distance_transform_edt(~region, return_distances=False, return_indices=True)
+    idx = np.clip(np.round(seeds_kji).astype(int), 0, np.asarray(region.shape) - 1)
+    starts = {tuple(int(nearest[a][tuple(i)]) for a in range(3)) for i in idx}
+    geodesic, _ = MCP_Geometric(np.where(region, 1.0, np.inf), sampling=tuple(spacing_kji)).find_costs(list(starts))
+    return geodesic
 
 
 def point_mask(points_kji: np.ndarray, shape) -> np.ndarray:

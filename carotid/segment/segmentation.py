@@ -18,8 +18,8 @@ from scipy import ndimage
 
 from carotid.errors import CarotidError
 from carotid.io import Volume, atomic_dir, write_image, write_json
-from carotid.segment.barrier import (chamber_cores, competing_region, half_level_barrier, half_maximum_speed,
-                                     point_mask, under_enhanced)
+from carotid.segment.barrier import (chamber_cores, chamber_neck, competing_region, half_level_barrier,
+                                     half_maximum_speed, point_mask, under_enhanced)
 from carotid.segment.calcium import hyperdense_edge
 from carotid.segment.deblur import refine
 from carotid.segment.init import automatic_region, check_points, mask_levelset, seed_levelset, seed_sample
@@ -74,8 +74,9 @@ class SegmentParameters:
     chamber_ratio : float
         A region the captured front reaches whose inscribed radius exceeds this many times the vessel's radius
         near the seeds is a chamber (a heart cavity behind an open valve, an aneurysm): it is kept out of the
-        lumen up to the darkest surface between (``barrier.chamber_cores``) and the capture stage resumes.
-        Only with seeds.  0: off.
+        lumen up to the darkest surface between (``barrier.chamber_cores``) or, within one vessel radius of
+        that surface, the narrowest section (``barrier.chamber_neck``: an open valve's annulus), and the
+        capture stage resumes.  Only with seeds.  0: off.
     chamber_reach_mm : float
         Geodesic distance (mm) from the seeds over which the vessel's radius is taken.
     half_maximum : float
@@ -343,13 +344,16 @@ def deblur(image: np.ndarray, phi: np.ndarray, spacing_kji, model: IntensityMode
 def chambers(phi: np.ndarray, image01: np.ndarray, window, model: IntensityModel, spacing_kji,
              params: SegmentParameters, seeds_kji: np.ndarray) -> tuple[np.ndarray | None, dict | None]:
     """The chambers the captured front ``phi`` has run into, up to the darkest surface between them and the
-    vessel (``barrier.chamber_cores``, ``barrier.competing_region``), and their report (centres as array
+    vessel (``barrier.chamber_cores``, ``barrier.competing_region``) or, within one vessel radius of it, the
+    narrowest section (``barrier.chamber_neck``: an open valve's annulus), and their report (centres as array
     indices); (None, None) when there is none."""
-    cores, vessel, radius = chamber_cores(phi < 0, seeds_kji, spacing_kji, params.chamber_ratio,
+    captured = phi < 0
+    cores, vessel, radius = chamber_cores(captured, seeds_kji, spacing_kji, params.chamber_ratio,
                                           params.chamber_reach_mm)
     if not cores.any():
         return None, None
     region = competing_region(contrast_units(image01, window, model), vessel, cores, spacing_kji)
+    region = chamber_neck(captured, region & captured, seeds_kji, spacing_kji, radius) | region
     labels, n = ndimage.label(cores)
     centres = np.array(ndimage.center_of_mass(cores, labels, range(1, n + 1)), float)
     return region, {"vessel_radius_mm": radius, "cores": n, "centres_kji": centres,
