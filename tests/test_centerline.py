@@ -101,6 +101,29 @@ def test_straight_tube_with_its_axis_midway_between_voxel_centres():
     assert np.median(np.abs(cca.median_radii - 2.5)) < 0.03
 
 
+def test_a_symmetric_tube_keeps_its_whole_axis_past_a_stenosis(monkeypatch):
+    """The same tube, 32 mm long, with a stenosis (depth 0.6, raised cosine of half-length 4 mm at z = 0):
+    thinning deletes the symmetric part below the stenosis, where the tube meets the image border, and keeps
+    the rest; the axis must still run from border to border (z = -12 to 20 mm) and grade NASCET 60 %.
+    Without the check for lumen left far from the skeleton (mutation), the axis starts at the stenosis."""
+    from carotid.centerline import skeleton
+
+    vol, xyz = grid((160, 36, 36), (0.2, 0.2, 0.2), origin=(-3.5, -3.5, -12.0))
+    z = xyz[:, 2]
+    radius = 2.5 * (1.0 - 0.3 * (1.0 + np.cos(np.pi * np.clip(z / 4.0, -1.0, 1.0))))
+    tube = vol.with_array((np.hypot(xyz[:, 0], xyz[:, 1]) - radius).reshape(vol.array.shape).astype(np.float32))
+
+    def graded():
+        cl = compute_centerlines(tube)
+        return np.ptp(cl.branches[0].points[:, 2]), cl.info["stenosis"]["nascet"]
+
+    span, nascet = graded()
+    assert span > 31.0 and nascet == pytest.approx(0.6, abs=0.01)
+    monkeypatch.setattr(skeleton, "_stranded", lambda *args: 0)
+    span, _ = graded()
+    assert span < 25.0
+
+
 def tilted_elliptic_tube():
     """An elliptic tube (semi-axes 2.0 and 1.2 mm) along an axis tilted 30 degrees in an anisotropic, rotated
     grid, and a thin neighbour 0.2 mm off its narrow side: level set, axis, and the ellipse's axes."""
@@ -163,6 +186,72 @@ def test_the_narrow_radius_does_not_depend_on_where_the_axis_lies(offset):
     assert np.all(nearest < radius - 0.8 * offset)
     with pytest.raises(ValueError, match="even"):
         section_profile(rays[:, :-1])
+
+
+def short_throat():
+    """Exact signed distance of a short stenosis: a tube of radius 3 mm along z whose radius dips to 2 mm as a
+    raised cosine of half-length 2 mm (the wall's radius of curvature along the axis is 0.8 mm at the throat),
+    on 0.45 x 0.45 x 0.9 mm voxels, its axis 0.1 mm off the voxel centres."""
+    vol, xyz = grid((27, 20, 20), (0.45, 0.45, 0.9), origin=(-4.4, -4.4, -12.0))
+    x, y, z = xyz.T
+
+    def profile(t):
+        return 3.0 - 0.5 * (1.0 + np.cos(np.pi * np.clip(t / 2.0, -1.0, 1.0)))
+
+    t = np.arange(-15.0, 15.0, 0.002)
+    distance, _ = cKDTree(np.column_stack([profile(t), t])).query(np.column_stack([np.hypot(x, y), z]))
+    sign = np.where(np.hypot(x, y) < profile(z), -1.0, 1.0)
+    return vol.with_array((sign * distance).reshape(vol.array.shape).astype(np.float32))
+
+
+class TrilinearSections:
+    """Mutation of ``axes.SectionSampler``: trilinear interpolation of the level set."""
+
+    def __init__(self, levelset, points, reach_mm):
+        self.levelset = levelset
+
+    def __call__(self, xyz):
+        from carotid.centerline.axes import sample
+
+        return sample(self.levelset, xyz)
+
+
+def test_a_short_throat_is_measured_at_its_true_width(monkeypatch):
+    """Half the narrowest chord of a short throat 4 mm across, from its exact distance function on voxels
+    twice as long along the axis, within 0.03 mm (0.022); trilinear interpolation (mutation) reads it 0.048 mm
+    wide: its error is ``h^2 / 8`` times the curvature, which is largest along the axis at a throat."""
+    from carotid.centerline import axes
+
+    throat = short_throat()
+    points = np.stack([np.zeros(41), np.zeros(41), np.linspace(-1.0, 1.0, 41)], axis=1)
+
+    def narrowest():
+        return section_profile(section_radii(throat, points, np.full(41, 2.0)))[1].min()
+
+    assert narrowest() == pytest.approx(2.0, abs=0.03)
+    monkeypatch.setattr(axes, "SectionSampler", TrilinearSections)
+    assert narrowest() > 2.04
+
+
+@pytest.mark.parametrize("seed", [8, 13])
+def test_the_true_lumen_of_a_tight_family_stenosis_grades_near_its_throat(seed, monkeypatch):
+    """The phantom's exact distance function of a tight stenosis (family cases 8 and 13: 0.48 x 0.48 x 0.69
+    and 0.42 x 0.42 x 0.80 mm voxels, a calcified plaque cut out of the lumen) grades its minimal diameter
+    within 0.13 mm of the throat's (+0.08 and +0.11 mm); trilinear interpolation (mutation) reads it more
+    than 0.16 mm wide (+0.18 and +0.23 mm), the bias the grading of the segmentation would share."""
+    from carotid.centerline import axes
+    from carotid.phantom import make_phantom, sample_family
+
+    ph = make_phantom(**sample_family(seed))
+    truth = ph.image.with_array(ph.sdf.array.astype(np.float32))
+    exact = ph.info["stenosis"]["min_diameter_mm"]
+
+    def error():
+        return stenosis(compute_centerlines(truth).branch("ICA"))["min_diameter_mm"] - exact
+
+    assert abs(error()) < 0.13
+    monkeypatch.setattr(axes, "SectionSampler", TrilinearSections)
+    assert error() > 0.16
 
 
 def lumpy_stenosis(amplitude):

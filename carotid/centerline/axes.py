@@ -13,6 +13,15 @@ low as the deepest dent in the wall; the section area (``section_areas``,
 VMTK's ``CenterlineSectionArea``) averages dents out and is what an area
 stenosis or a flow rate per area needs.
 
+Sections (``section_radii``, ``section_areas``) find the wall by sampling
+``phi`` with cubic B-spline interpolation (``SectionSampler``).  Trilinear
+interpolation is exact only where ``phi`` is linear; across a wall curved
+along the axis it errs by ``h^2 / 8`` times the curvature (``h`` the voxel
+size along the axis), and at a short, tight stenosis, whose wall is sharply
+concave along the axis, that moves the wall out: on 0.42 x 0.42 x 0.8 mm
+voxels the exact distance function of a phantom throat 2.9 mm across read
+0.23 mm too wide, against 0.11 mm with the cubic spline.
+
 Smoothing is a Gaussian in arc length applied to the uniformly resampled
 axis, with the axis continued beyond each end by point reflection
 (``2 p_end - p``) so that the end points stay where they are and a straight
@@ -76,6 +85,41 @@ def sample(volume: Volume, points: np.ndarray) -> np.ndarray:
     return ndimage.map_coordinates(volume.array, kji.T, order=1, mode="nearest").astype(float)
 
 
+class SectionSampler:
+    """Cubic B-spline interpolation of a level set near a set of axis points (scipy's spline filter).
+
+    The spline coefficients are computed once, on the box around the points widened by ``reach_mm`` and
+    four voxels (the filter's influence decays by 0.27 per voxel, so the box's edge does not reach the
+    wall); points outside the box take the nearest coefficient.
+
+    Parameters
+    ----------
+    levelset : Volume
+        Negative inside the lumen.
+    points : ndarray, shape (n, 3)
+        World points (mm) around which it will be sampled.
+    reach_mm : float
+        Distance (mm) from ``points`` out to which it will be sampled.
+    """
+
+    def __init__(self, levelset: Volume, points: np.ndarray, reach_mm: float):
+        kji = levelset.world_to_index(np.asarray(points, float).reshape(-1, 3))
+        pad = reach_mm / np.asarray(levelset.spacing_kji, float) + 4.0
+        shape = np.asarray(levelset.array.shape)
+        lo = np.clip(np.floor(kji.min(axis=0) - pad).astype(int), 0, shape - 1)
+        hi = np.clip(np.ceil(kji.max(axis=0) + pad).astype(int) + 1, lo + 1, shape)
+        self.levelset, self.corner = levelset, lo
+        self.coefficients = ndimage.spline_filter(
+            np.asarray(levelset.array[tuple(slice(a, b) for a, b in zip(lo, hi))], np.float32), order=3,
+            output=np.float32, mode="nearest")
+
+    def __call__(self, points: np.ndarray) -> np.ndarray:
+        """The level set at world points (n, 3) mm, shape (n,)."""
+        kji = self.levelset.world_to_index(np.asarray(points, float).reshape(-1, 3)) - self.corner
+        return ndimage.map_coordinates(self.coefficients, kji.T, order=3, mode="nearest",
+                                       prefilter=False).astype(float)
+
+
 class WallDistance:
     """Distance (mm) from points to the lumen wall, the zero level set of a level set volume.
 
@@ -114,9 +158,10 @@ def section_areas(levelset: Volume, points: np.ndarray, radii: np.ndarray, step:
                   reach: float = 1.5, margin: float = 0.5) -> np.ndarray:
     """Area (mm^2) of the lumen section through each axis point, in the plane normal to the axis.
 
-    The plane is sampled on a square grid of ``step`` mm (coarser, 1/40 of the disc radius, for wide vessels)
-    within a disc of ``reach * radius + margin`` around the point, and only the part of the section connected
-    to the point counts (a neighbouring branch cut by the same plane does not).
+    The level set is sampled (``SectionSampler``) on a square grid of ``step`` mm in the plane (coarser, 1/40
+    of the disc radius, for wide vessels) within a disc of ``reach * radius + margin`` around the point, and
+    only the part of the section connected to the point counts (a neighbouring branch cut by the same plane
+    does not).
 
     Parameters
     ----------
@@ -144,11 +189,12 @@ def section_areas(levelset: Volume, points: np.ndarray, radii: np.ndarray, step:
     a, b = np.meshgrid(g, g, indexing="ij")
     m = len(g)
     inside = np.empty((len(points), m, m), bool)
+    phi_at = SectionSampler(levelset, points, float(disc.max()) * np.sqrt(2.0))
     for lo in range(0, len(points), 64):  # blocks of points bound the memory of the sample grid
         sl = slice(lo, lo + 64)
         grid = (points[sl, None, None] + a[None, ..., None] * u[sl, None, None]
                 + b[None, ..., None] * v[sl, None, None])
-        inside[sl] = sample(levelset, grid.reshape(-1, 3)).reshape(-1, m, m) < 0
+        inside[sl] = phi_at(grid.reshape(-1, 3)).reshape(-1, m, m) < 0
     inside &= np.hypot(a, b)[None] <= disc[:, None, None]
     planar = np.zeros((3, 3, 3), bool)
     planar[1] = ndimage.generate_binary_structure(2, 1)
@@ -168,8 +214,9 @@ def section_radii(levelset: Volume, points: np.ndarray, radii: np.ndarray, n_ray
                   reach: float = 1.5, margin: float = 1.0) -> np.ndarray:
     """Distance (mm) from each axis point to the lumen wall along rays in the plane normal to the axis.
 
-    Each ray is sampled every quarter of the smallest voxel size and the wall is the first zero crossing of
-    the level set along it, placed by linear interpolation between the two samples that bracket it.  A ray
+    Each ray samples the level set (cubic B-spline, ``SectionSampler``) every quarter of the smallest voxel
+    size and the wall is the first zero crossing along it, placed by linear interpolation between the two
+    samples that bracket it.  A ray
     that stays inside out to ``reach * radius + margin`` (into a branch that leaves through the section)
     reads that length.
 
@@ -202,10 +249,11 @@ def section_radii(levelset: Volume, points: np.ndarray, radii: np.ndarray, n_ray
     length = reach * radii + margin
     along = np.arange(0.0, float(length.max()) + step, step)
     out = np.empty((len(points), n_rays))
+    phi_at = SectionSampler(levelset, points, float(along[-1]))
     for lo in range(0, len(points), 32):  # blocks of points bound the memory of the samples
         sl = slice(lo, lo + 32)
         xyz = points[sl, None, None] + along[None, None, :, None] * ray[sl, :, None]
-        phi = sample(levelset, xyz.reshape(-1, 3)).reshape(xyz.shape[:3])
+        phi = phi_at(xyz.reshape(-1, 3)).reshape(xyz.shape[:3])
         outside = (phi >= 0) | (along[None, None, :] > length[sl, None, None])
         k = np.where(outside.any(axis=2), np.argmax(outside, axis=2), len(along) - 1).clip(1)
         a = np.take_along_axis(phi, (k - 1)[..., None], axis=2)[..., 0]

@@ -16,11 +16,14 @@ The thinning itself is scikit-image's ``skeletonize`` (Lee, Kashyap and Chu's
   end by about one radius (and fork it towards the rim); with the extension
   the axis reaches the border, where the open ends of the vessel tree are;
 * a straight vessel whose section is mirror-symmetric about a line between
-  voxel centres (an axis exactly midway between them) can be thinned away
-  whole, both middle layers being deleted together; when nothing is left the
-  mask is thinned again after a one-voxel erosion from the +i and +j sides,
-  which breaks that symmetry (the half-voxel shift is undone by the
-  re-centring of the axis).
+  voxel centres (an axis exactly midway between them) can be thinned away,
+  whole or from an end up to where the symmetry breaks (a stenosis), both
+  middle layers being deleted together; when nothing is left, or part of the
+  lumen lies more than three of its largest inscribed radii from the
+  skeleton, the mask is thinned again after a one-voxel erosion from the +i
+  and +j sides, which breaks that symmetry (the half-voxel shift is undone by
+  the re-centring of the axis), and the skeleton that leaves less of the
+  lumen that far away is kept.
 """
 
 from __future__ import annotations
@@ -73,6 +76,13 @@ def largest_component(mask: np.ndarray, voxel_mm3: float) -> tuple[np.ndarray, d
                    "discarded_volume_mm3": float((sizes.sum() - sizes[order[0]]) * voxel_mm3)}
 
 
+def _stranded(skel: np.ndarray, region: np.ndarray, spacing_kji: np.ndarray, reach_mm: float) -> int:
+    """Voxels of ``region`` farther than ``reach_mm`` from the skeleton (all of them when it is empty)."""
+    if not skel.any():
+        return int(np.count_nonzero(region))
+    return int(np.count_nonzero(region & (ndimage.distance_transform_edt(~skel, sampling=spacing_kji) > reach_mm)))
+
+
 def _padded_crop(lumen: np.ndarray, pad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Crop ``lumen`` to its bounding box plus a 1-voxel margin; faces that touch the image border are
     extended by ``pad[axis]`` voxels replicating the border slice, the others by ``pad`` empty voxels.
@@ -117,12 +127,16 @@ def skeletonize_lumen(lumen: np.ndarray, spacing_kji, extend_mm: float) -> np.nd
     ndarray of bool, same shape as ``lumen``
         The skeleton voxels (26-connected, one voxel thick).
     """
-    pad = np.ceil(extend_mm / np.asarray(spacing_kji, float)).astype(int) + 1
+    spacing_kji = np.asarray(spacing_kji, float)
+    pad = np.ceil(extend_mm / spacing_kji).astype(int) + 1
     crop, corner = _padded_crop(lumen, pad)
     regular = ndimage.gaussian_filter(crop.astype(np.float32), REGULARISE_VOXELS) > 0.5
     skel = skeletonize(regular)
-    if not skel.any():
-        skel = skeletonize(regular & np.roll(regular, -1, axis=2) & np.roll(regular, -1, axis=1))
+    lost = _stranded(skel, regular, spacing_kji, 1.5 * extend_mm)
+    if lost:
+        other = skeletonize(regular & np.roll(regular, -1, axis=2) & np.roll(regular, -1, axis=1))
+        if _stranded(other, regular, spacing_kji, 1.5 * extend_mm) < lost:
+            skel = other
     out = np.zeros(lumen.shape, bool)
     kji = np.argwhere(skel) + corner
     inside = np.all((kji >= 0) & (kji < lumen.shape), axis=1)
