@@ -80,7 +80,8 @@ def _stranded(skel: np.ndarray, region: np.ndarray, spacing_kji: np.ndarray, rea
     """Voxels of ``region`` farther than ``reach_mm`` from the skeleton (all of them when it is empty)."""
     if not skel.any():
         return int(np.count_nonzero(region))
-    return int(np.count_nonzero(region & (ndimage.distance_transform_edt(~skel, sampling=spacing_kji) > reach_mm)))
+    far = ndimage.distance_transform_edt(~skel, sampling=spacing_kji) > reach_mm
+    return int(np.count_nonzero(region & far))
 
 
 def _padded_crop(lumen: np.ndarray, pad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
