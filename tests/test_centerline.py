@@ -219,7 +219,7 @@ class TrilinearSections:
 def test_a_short_throat_is_measured_at_its_true_width(monkeypatch):
     """Half the narrowest chord of a short throat 4 mm across, from its exact distance function on voxels
     twice as long along the axis, within 0.03 mm (0.022); trilinear interpolation (mutation) reads it 0.048 mm
-    wide: its error is ``h^2 / 8`` times the curvature, which is largest along the axis at a throat."""
+    too wide: its error is ``h^2 / 8`` times the curvature, which is largest along the axis at a throat."""
     from carotid.centerline import axes
 
     throat = short_throat()
@@ -235,7 +235,7 @@ def test_a_short_throat_is_measured_at_its_true_width(monkeypatch):
 
 @pytest.mark.parametrize("seed", [8, 13])
 def test_the_true_lumen_of_a_tight_family_stenosis_grades_near_its_throat(seed, monkeypatch):
-    """The phantom's exact distance function of a tight stenosis (family cases 8 and 13: 0.48 x 0.48 x 0.69
+    """The phantom's own distance function of a tight stenosis (family cases 8 and 13: 0.48 x 0.48 x 0.69
     and 0.42 x 0.42 x 0.80 mm voxels, a calcified plaque cut out of the lumen) grades its minimal diameter
     within 0.13 mm of the throat's (+0.08 and +0.11 mm); trilinear interpolation (mutation) reads it more
     than 0.16 mm wide (+0.18 and +0.23 mm), the bias the grading of the segmentation would share."""
