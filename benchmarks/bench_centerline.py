@@ -1,7 +1,8 @@
 """Benchmark of ``compute_centerlines``: seconds, peak memory and accuracy against the phantom's truth.
 
-VMTK (the field's centerline tool) has no wheel for this Python, so there is
-no peer in the same process; instead the figures compare carotid's settings
+VMTK (the field's centerline tool) needs its own Python 3.12 environment, so
+there is no peer in this process (``bench_segmentation.py`` runs VMTK's
+centerlines as the grading's peer); instead the figures compare carotid's settings
 on the same input, the demo phantom (``make_phantom(stenosis=0.7, noise=20,
 seed=0)``, 98 x 98 x 120 voxels of 0.45 x 0.45 x 0.625 mm) with its true
 signed distance as the level set and its true mask:
@@ -20,7 +21,7 @@ A larger 256^3 phantom (0.45 mm isotropic) is timed with the default settings.
 
 Usage (from the repository root)::
 
-    /tmp/venv/bin/python benchmarks/bench_centerline.py [--quick]
+    .venv/bin/python benchmarks/bench_centerline.py [--quick]
 """
 
 from __future__ import annotations
