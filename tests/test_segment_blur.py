@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from carotid.segment import calcium
+from carotid.segment import calcium, deblur
 from carotid.segment.calcium import hyperdense_edge
 from carotid.segment.deblur import normal_background, refine
-from carotid.segment.intensity import edge_blur, wide_gaussian
+from carotid.segment.intensity import edge_blur, local_level, wide_gaussian
 
 B, A, P = 40.0, 300.0, 1000.0  # tissue, lumen and calcium levels (HU)
 SPACING = np.array([0.3, 0.25, 0.25])  # (k, j, i) mm, anisotropic
@@ -170,6 +170,22 @@ def test_refinement_narrows_a_front_that_is_too_wide_and_stays_within_a_blur_wid
     # A front 2 mm too wide may move by one blur width only: the refinement corrects, it does not re-segment.
     far = refine(image, (sdf - 2.0).astype(np.float32), SPACING, A, B, 0.6)
     assert radius_of(far) >= 4.0 - 0.6 - 0.02
+
+
+def test_the_lumen_level_is_read_on_a_core_with_the_blur_taken_out(monkeypatch):
+    """A 4 mm tube blurred by 0.8 mm: two blur widths inside its wall the blur still darkens the core by 4 % of
+    the contrast, so a model built on the core's plain mean is too dark and moves the true wall 0.08 mm out.
+    The level is followed from the core (``level_mm``) from a default 50 HU too low; with the blur taken out
+    of the core the wall stays where it is."""
+    shape = (24, 64, 64)
+    sdf = tube_sdf(shape, 2.0).astype(np.float32)
+    image = (B + (A - B) * blurred(occupancy(sdf), 0.8)
+             + np.random.default_rng(3).normal(0, 15, shape)).astype(np.float32)
+    assert radius_of(refine(image, sdf, SPACING, A - 50.0, B, 0.8, level_mm=10.0)) == pytest.approx(2.0, abs=0.02)
+    # Mutation: the core's plain mean.
+    monkeypatch.setattr(deblur, "lumen_level", lambda image, tissue, phi, core, spacing, blur, ramp, scale, default:
+                        local_level(image, core, spacing, scale, default))
+    assert radius_of(refine(image, sdf, SPACING, A - 50.0, B, 0.8, level_mm=10.0)) > 2.05
 
 
 @pytest.mark.parametrize("sigma", [0.6, 0.8])

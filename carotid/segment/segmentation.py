@@ -331,14 +331,12 @@ def deblur(image: np.ndarray, phi: np.ndarray, spacing_kji, model: IntensityMode
     """The converged front moved to the wall of the blurred lumen model that best explains ``image``
     (``deblur.refine``), with the lumen level followed along the vessel and neighbours and calcium left out."""
     phi = signed_distance(phi, spacing_kji, params.far_mm)  # the evolution's level set is clipped to its band
-    depth = max(2.0 * model.blur, float(np.max(spacing_kji)))
-    lumen = (local_level(image, phi < -depth, spacing_kji, params.level_mm, model.lumen) if params.level_mm > 0
-             else model.lumen)
     exclude = stopped
     if dense is not None:
         exclude = dense if exclude is None else exclude | dense
-    return refine(image, phi, spacing_kji, lumen, model.background, model.blur, exclude,
-                  iterations=params.deblur_iterations, gain=params.deblur_gain, smooth_mm=params.deblur_smooth_mm)
+    return refine(image, phi, spacing_kji, model.lumen, model.background, model.blur, exclude,
+                  iterations=params.deblur_iterations, gain=params.deblur_gain, smooth_mm=params.deblur_smooth_mm,
+                  level_mm=params.level_mm)
 
 
 def chambers(phi: np.ndarray, image01: np.ndarray, window, model: IntensityModel, spacing_kji,
