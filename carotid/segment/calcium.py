@@ -213,12 +213,14 @@ def structure_blur(image: np.ndarray, labels: np.ndarray, n: int, fraction: np.n
     amplitude : ndarray, shape (n,)
     """
     sigma = blur_mm / np.asarray(spacing_kji, float)
-    index = np.arange(1, n + 1)
     kernel = gaussian_filter(fraction, sigma)
-    fit = np.where(kernel > np.float32(0.05), owner, 0)
     excess = np.asarray(image, np.float32) - np.float32(background)
-    amplitude = np.asarray(ndimage.sum(kernel * excess, fit, index), float) / np.maximum(
-        np.asarray(ndimage.sum(kernel * kernel, fit, index), float), 1e-6)
+    # Sums over the voxels each structure owns, by bincount on those voxels alone (ndimage.sum over the whole
+    # image took a second of a 256^3 run).
+    fit = np.nonzero((kernel > np.float32(0.05)) & (owner > 0))
+    which, weight = owner[fit], kernel[fit]
+    amplitude = np.bincount(which, weight * excess[fit], n + 1)[1:] / np.maximum(
+        np.bincount(which, weight * weight, n + 1)[1:], 1e-6)
     # The blurred structure cannot be brighter than it is: at most its own excess where it is most itself.
     inside = labels > 0
     peak, reach = (label_maximum(v[inside], labels[inside], n) for v in (excess, kernel))

@@ -263,8 +263,14 @@ def edge_starts(voxels: np.ndarray, shape) -> np.ndarray:
     """
     strides = (shape[1] * shape[2], shape[2], 1)
     kji = _unravel(voxels, shape)
-    parts = [voxels] + [voxels[kji[:, axis] > 0] - stride for axis, stride in enumerate(strides)]
-    return np.unique(np.concatenate(parts))
+    parts = np.concatenate([voxels] + [voxels[kji[:, axis] > 0] - stride for axis, stride in enumerate(strides)])
+    if not len(parts):
+        return parts
+    # Sorted and unique through a mark over the index range: np.unique sorts, 1.7 s of a 256^3 run.
+    low = int(parts.min())
+    mark = np.zeros(int(parts.max()) - low + 1, bool)
+    mark[parts - low] = True
+    return (np.flatnonzero(mark) + low).astype(voxels.dtype, copy=False)
 
 
 def redistance(phi: np.ndarray, near_front: np.ndarray, spacing_kji, width: float,
