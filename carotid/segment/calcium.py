@@ -84,11 +84,16 @@ def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: flo
     hot = smooth > np.float32(top)
     if not hot.any():
         return image, hot, {"structures": 0, "volume_mm3": 0.0, "blur_amplitude_max": 0.0}
-    distance = ndimage.distance_transform_edt(~hot, sampling=spacing_kji)
-    near = distance <= reach_mm
+    # Distances to the structures only where they can reach (the transform of a whole 256^3 image with a
+    # vertebra in it took 3.5 s; its crop gives the same distances within reach).
+    outer = region_box(hot, spacing_kji, reach_mm)
+    distance = ndimage.distance_transform_edt(~hot[outer], sampling=spacing_kji)
+    near = np.zeros(image.shape, bool)
+    near[outer] = distance <= reach_mm
     box = region_box(near, spacing_kji, 0.0)
     # Lumen-level voxels closer than two blur widths may be a structure's own blurred edge: no lumen marker there.
-    clear = distance[box] > 2.0 * (blur_mm or sigma_mm)
+    clear = distance[tuple(slice(b.start - o.start, b.stop - o.start) for b, o in zip(box, outer))] > 2.0 * (
+        blur_mm or sigma_mm)
     regions = np.zeros(image.shape, np.int8)
     regions[box] = structure_regions(image[box], smooth[box], hot[box], near[box], clear, lumen, background,
                                      spacing_kji, sigma_mm)

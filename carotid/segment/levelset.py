@@ -173,6 +173,8 @@ def _propagate(phi, ends, points, normals, hz, hy, hx, width, owner):  # pragma:
 
     ``owner`` (flat, int32, -1 where unset) receives the label of every voxel
     reached; ``phi`` gets their signed distances.  Returns the voxels reached.
+    A neighbour the popped voxel's crossing already owns is skipped before any distance is computed, and the
+    squared offsets along k and j are shared by the neighbours of a row.
     """
     nz, ny, nx = phi.shape
     s0 = ny * nx
@@ -204,40 +206,48 @@ def _propagate(phi, ends, points, normals, hz, hy, hx, width, owner):  # pragma:
         v = queue[head % queue.size]
         head += 1
         c = owner[v]
+        pz, py, px = points[c, 0], points[c, 1], points[c, 2]
         k = v // s0
         j = (v - k * s0) // nx
         i = v - k * s0 - j * nx
-        for nb in range(27):
-            dk, dj, di = nb // 9 - 1, (nb // 3) % 3 - 1, nb % 3 - 1
-            kk, jj, ii = k + dk, j + dj, i + di
-            if nb == 13 or kk < 0 or kk >= nz or jj < 0 or jj >= ny or ii < 0 or ii >= nx:
+        for kk in range(k - 1, k + 2):
+            if kk < 0 or kk >= nz:
                 continue
-            u = kk * s0 + jj * nx + ii
-            dn = (kk * hz - points[c, 0]) ** 2 + (jj * hy - points[c, 1]) ** 2 + (ii * hx - points[c, 2]) ** 2
-            if dn >= w2:
-                continue
-            o = owner[u]
-            if o == -1:
-                if n_visit == visited.size:
-                    visited = np.concatenate((visited, np.empty(visited.size, np.int64)))
-                visited[n_visit] = u
-                n_visit += 1
-            elif o == c:
-                continue
-            else:
-                do = (kk * hz - points[o, 0]) ** 2 + (jj * hy - points[o, 1]) ** 2 + (ii * hx - points[o, 2]) ** 2
-                if dn >= do:
+            ez = (kk * hz - pz) ** 2
+            for jj in range(j - 1, j + 2):
+                if jj < 0 or jj >= ny:
                     continue
-            owner[u] = c
-            if tail - head == queue.size:
-                grown = np.empty(2 * queue.size, np.int64)
-                for q in range(head, tail):
-                    grown[q - head] = queue[q % queue.size]
-                tail -= head
-                head = 0
-                queue = grown
-            queue[tail % queue.size] = u
-            tail += 1
+                ey = ez + (jj * hy - py) ** 2
+                base = kk * s0 + jj * nx
+                for ii in range(i - 1, i + 2):
+                    if ii < 0 or ii >= nx:
+                        continue
+                    u = base + ii
+                    o = owner[u]
+                    if o == c:
+                        continue
+                    dn = ey + (ii * hx - px) ** 2
+                    if dn >= w2:
+                        continue
+                    if o == -1:
+                        if n_visit == visited.size:
+                            visited = np.concatenate((visited, np.empty(visited.size, np.int64)))
+                        visited[n_visit] = u
+                        n_visit += 1
+                    else:
+                        do = (kk * hz - points[o, 0]) ** 2 + (jj * hy - points[o, 1]) ** 2 + (ii * hx - points[o, 2]) ** 2
+                        if dn >= do:
+                            continue
+                    owner[u] = c
+                    if tail - head == queue.size:
+                        grown = np.empty(2 * queue.size, np.int64)
+                        for q in range(head, tail):
+                            grown[q - head] = queue[q % queue.size]
+                        tail -= head
+                        head = 0
+                        queue = grown
+                    queue[tail % queue.size] = u
+                    tail += 1
     visited = visited[:n_visit]
     for t in range(n_visit):
         v = visited[t]
