@@ -188,6 +188,38 @@ def test_the_lumen_level_is_read_on_a_core_with_the_blur_taken_out(monkeypatch):
     assert radius_of(refine(image, sdf, SPACING, A - 50.0, B, 0.8, level_mm=10.0)) > 2.05
 
 
+def throat_image(slices: int, h: float = 0.3, sigma: float = 0.6, length: float = 1.5, depth: float = 0.9):
+    """A tube along k, radius ``2 - depth exp(-z^2 / (2 length^2))`` mm (throat 1.1 mm at z = 0), blurred by
+    ``sigma`` on an isotropic grid of ``h`` mm and integrated over slices of ``slices`` grid planes (as a
+    scanner's thick slice does); 10 HU noise.  Returns the image, its spacing and the true signed distance
+    (``r - R(z)``) on its grid."""
+    n, nc = 64, 15
+    zc = (np.arange(nc) - (nc - 1) / 2) * slices * h
+    zf = (zc[:, None] + (np.arange(slices) - (slices - 1) / 2) * h).ravel()
+    xy = (np.arange(n) - (n - 1) / 2) * h
+
+    def sdf(z):
+        zz, y, x = np.meshgrid(z, xy, xy, indexing="ij")
+        return np.hypot(x, y) - (2.0 - depth * np.exp(-zz ** 2 / (2 * length ** 2)))
+
+    fine = blurred(np.clip(0.5 - sdf(zf) / h, 0, 1).astype(np.float32), sigma, np.full(3, h))
+    image = B + (A - B) * fine.reshape(nc, slices, n, n).mean(axis=1)
+    image += np.random.default_rng(5).normal(0, 10, image.shape)
+    return image.astype(np.float32), np.array([slices * h, h, h]), sdf(zc).astype(np.float32)
+
+
+def test_a_thick_slice_blurs_a_throat_along_the_vessel_and_the_model_does_too():
+    """A 1.1 mm throat in 1.5 mm slices: the slice's boxcar fills the throat from the wider lumen on either
+    side, and a model blurred along the vessel by the in-plane blur alone widens the throat to match."""
+    image, spacing, sdf = throat_image(slices=5)
+    blur = float(np.hypot(0.6, 0.3 / np.sqrt(12)))  # what edge_blur measures within the slices
+    # The middle slice is the throat's.
+    assert radius_of(refine(image, sdf, spacing, A, B, blur), spacing) == pytest.approx(1.1, abs=0.035)
+    # Mutation: the in-plane blur along every axis.
+    assert radius_of(refine(image, sdf, spacing, A, B, blur, slices=False), spacing) > 1.1 + 0.045
+    np.testing.assert_allclose(deblur.axis_blur(0.6, spacing), [np.sqrt(0.36 + (1.5 ** 2 - 0.09) / 12), 0.6, 0.6])
+
+
 @pytest.mark.parametrize("sigma", [0.6, 0.8])
 @pytest.mark.parametrize("offset", [-0.3, 0.3])
 def test_fat_on_one_side_of_the_wall_neither_dents_nor_bulges_it(sigma, offset):
