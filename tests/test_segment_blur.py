@@ -220,6 +220,25 @@ def test_a_thick_slice_blurs_a_throat_along_the_vessel_and_the_model_does_too():
     np.testing.assert_allclose(deblur.axis_blur(0.6, spacing), [np.sqrt(0.36 + (1.5 ** 2 - 0.09) / 12), 0.6, 0.6])
 
 
+def test_the_refinement_reads_its_level_set_only_within_its_reach():
+    """A level set clamped at ``reach_mm`` refines to the same wall, bit for bit, as the exact distance."""
+    image, spacing, sdf = throat_image(slices=3)
+    blur = 0.6
+    reach = deblur.reach_mm(blur, spacing)
+    assert 0 < reach < np.abs(sdf).max()
+    exact = refine(image, sdf, spacing, A, B, blur, level_mm=10.0)
+
+    def clamped(at):
+        return refine(image, np.clip(sdf, -at, at), spacing, A, B, blur, level_mm=10.0)
+
+    near = np.abs(exact) < 1.0
+    np.testing.assert_array_equal(clamped(reach)[near], exact[near])
+    np.testing.assert_array_equal(clamped(reach) < 0, exact < 0)
+    # Mutation: clamped well within the model's reach (the bound is about twice what this case needs), the
+    # wall moves.
+    assert not np.array_equal(clamped(0.3 * reach)[near], exact[near])
+
+
 @pytest.mark.parametrize("sigma", [0.6, 0.8])
 @pytest.mark.parametrize("offset", [-0.3, 0.3])
 def test_fat_on_one_side_of_the_wall_neither_dents_nor_bulges_it(sigma, offset):

@@ -107,24 +107,31 @@ def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: flo
         fraction = np.zeros(image.shape, np.float32)
         fraction[box] = edge_fraction(image[box], extent[box], near[box], spacing_kji, blur_mm, sigma_mm)
         extent = fraction > 0.5
-    labels, n = ndimage.label(extent)
-    out = np.where(extent, np.float32(background), image)
+    # Everything below happens within the structures' box grown by their blur's reach: beyond it the image is
+    # left as it is (a whole 256^3 image's filters took a second).
+    wide = region_box(near, spacing_kji, 4.0 * (blur_mm or 0.0) + float(spacing_kji.max()))
+    inside = extent[wide]
+    labels, n = ndimage.label(inside)
+    crop = image[wide]
+    local = np.where(inside, np.float32(background), crop)
     if blur_mm and n:
         reach = 2 * np.ceil(reach_mm / spacing_kji).astype(int) + 1
         grown = ndimage.maximum_filter(labels, size=reach)
-        owner = np.where((regions == TISSUE) & ~extent, grown, 0)
-        belongs = np.where(fraction > 0, np.where(labels > 0, labels, grown), 0)
-        blurred, amplitude = structure_blur(image, belongs, n, fraction, owner, background, spacing_kji, blur_mm)
+        owner = np.where((regions[wide] == TISSUE) & ~inside, grown, 0)
+        belongs = np.where(fraction[wide] > 0, np.where(labels > 0, labels, grown), 0)
+        blurred, amplitude = structure_blur(crop, belongs, n, fraction[wide], owner, background, spacing_kji,
+                                            blur_mm)
         # Within a blur width or two of its edge a structure holds its neighbours' blur too (the lumen's, up
         # to half the contrast at a shared edge): what remains after the subtraction, kept below the half level.
         rim = np.zeros(image.shape, bool)
         rim[box] = extent[box] & (ndimage.distance_transform_edt(extent[box], sampling=spacing_kji) < 2.0 * blur_mm)
-        remains = np.clip(image - blurred, np.float32(background), np.float32(0.5 * (lumen + background)))
-        out = np.where(extent, np.where(rim, remains, out), image - blurred)
+        remains = np.clip(crop - blurred, np.float32(background), np.float32(0.5 * (lumen + background)))
+        local = np.where(inside, np.where(rim[wide], remains, local), crop - blurred)
         amplitude_max = float(amplitude.max())
+    out = image.copy()
+    out[wide] = local
     volume = float(np.count_nonzero(extent) * np.prod(spacing_kji))
-    return out.astype(np.float32), extent, {"structures": int(n), "volume_mm3": volume,
-                                            "blur_amplitude_max": amplitude_max}
+    return out, extent, {"structures": int(n), "volume_mm3": volume, "blur_amplitude_max": amplitude_max}
 
 
 def in_the_wall(extent: np.ndarray, tissue: np.ndarray, spacing_kji, reach_mm: float) -> np.ndarray:

@@ -122,6 +122,27 @@ def refine(image: np.ndarray, phi: np.ndarray, spacing_kji, lumen: float, backgr
     return result
 
 
+def reach_mm(blur_mm: float, spacing_kji) -> float:
+    """Distance (mm) from the wall beyond which ``refine`` does not read its level set's values.
+
+    The misfit lives in a band ``2 blur_mm + h`` wide; the model's Gaussians (truncated at four standard
+    deviations per axis, so up to ``4 sqrt(3)`` of them diagonally) reach further, and each voxel they read
+    takes its tissue level along the gradient of the level set, a voxel further.  Beyond this distance a
+    level set clamped to it (``levelset.signed_distance``) refines to the same wall as an unclamped one.
+
+    Parameters
+    ----------
+    blur_mm : float
+    spacing_kji : array_like, shape (3,)
+
+    Returns
+    -------
+    float
+    """
+    h = float(np.max(spacing_kji))
+    return 2.0 * blur_mm + h + 4.0 * np.sqrt(3.0) * float(axis_blur(blur_mm, spacing_kji).max()) + 2.0 * h
+
+
 def axis_blur(blur_mm: float, spacing_kji) -> np.ndarray:
     """Standard deviation (mm) of the blur along each axis: ``sqrt(blur_mm^2 + (h_a^2 - h_min^2) / 12)``.
 

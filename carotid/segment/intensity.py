@@ -180,12 +180,18 @@ def background_level(image: np.ndarray, box, bright: np.ndarray, spacing_kji,
     float
     """
     spacing_kji = np.asarray(spacing_kji, float)
-    distance = ndimage.distance_transform_edt(~bright, sampling=spacing_kji)
     h = spacing_kji.max()
-    shell = (distance >= max(shell_mm[0], h)) & (distance <= max(shell_mm[1], 2.5 * h))
-    if not shell.any():
-        shell = ~bright
-    return float(np.median(image[box][shell])) if shell.any() else float(np.median(image))
+    inner, outer = max(shell_mm[0], h), max(shell_mm[1], 2.5 * h)
+    # The distances on the region's own box grown by the shell: every voxel of the region lies in it, so they
+    # are exact there (the whole box, 14 times as large at 256^3, took a second).
+    near = region_box(bright, spacing_kji, outer + h)
+    if near is not None:
+        distance = ndimage.distance_transform_edt(~bright[near], sampling=spacing_kji)
+        shell = (distance >= inner) & (distance <= outer)
+        if shell.any():
+            return float(np.median(image[box][near][shell]))
+    outside = ~bright
+    return float(np.median(image[box][outside])) if outside.any() else float(np.median(image))
 
 
 def local_radius(box, bright: np.ndarray, points_kji: np.ndarray, spacing_kji) -> np.ndarray:
@@ -203,7 +209,12 @@ def local_radius(box, bright: np.ndarray, points_kji: np.ndarray, spacing_kji) -
     -------
     ndarray, shape (m,)
     """
-    depth = ndimage.distance_transform_edt(bright, sampling=np.asarray(spacing_kji, float))
+    spacing_kji = np.asarray(spacing_kji, float)
+    depth = np.zeros(bright.shape)
+    # The region's box grown by a voxel holds the nearest outside voxel of every region voxel.
+    near = region_box(bright, spacing_kji, float(spacing_kji.min()))
+    if near is not None:
+        depth[near] = ndimage.distance_transform_edt(bright[near], sampling=spacing_kji)
     offset = np.array([s.start for s in box])
     idx = np.clip(np.round(points_kji).astype(int) - offset, 0, np.asarray(bright.shape) - 1)
     return depth[tuple(idx.T)]

@@ -21,7 +21,7 @@ from carotid.io import Volume, atomic_dir, write_image, write_json
 from carotid.segment.barrier import (chamber_cores, chamber_neck, competing_region, half_level_barrier,
                                      half_maximum_speed, point_mask, under_enhanced)
 from carotid.segment.calcium import hyperdense_edge
-from carotid.segment.deblur import refine
+from carotid.segment.deblur import reach_mm, refine
 from carotid.segment.init import automatic_region, check_points, mask_levelset, seed_levelset, seed_sample
 from carotid.segment.intensity import (IntensityModel, estimate_from_sample, local_level, local_radius,
                                        provisional_window)
@@ -335,7 +335,8 @@ def deblur(image: np.ndarray, phi: np.ndarray, spacing_kji, model: IntensityMode
            stopped: np.ndarray | None, dense: np.ndarray | None) -> np.ndarray:
     """The converged front moved to the wall of the blurred lumen model that best explains ``image``
     (``deblur.refine``), with the lumen level followed along the vessel and neighbours and calcium left out."""
-    phi = signed_distance(phi, spacing_kji, params.far_mm)  # the evolution's level set is clipped to its band
+    # The evolution's level set is clipped to its band; the refinement reads it out to reach_mm.
+    phi = signed_distance(phi, spacing_kji, min(params.far_mm, reach_mm(model.blur, spacing_kji)))
     exclude = stopped
     if dense is not None:
         exclude = dense if exclude is None else exclude | dense
