@@ -14,9 +14,9 @@ too wide, and NASCET 10-20 points too low.
 ``M = G_sigma * (A H(-phi) + B (1 - H(-phi)))``: the lumen indicator (with a
 partial-volume ramp one voxel wide) between the lumen level ``A``, followed
 along the vessel, and the tissue level ``B``, blurred by a Gaussian of the
-image's own blur (``intensity.edge_blur``) along the slices and the thicker voxels' own boxcar beyond them
-along their axis (``axis_blur``).  ``A`` is measured on the lumen's
-core with the blur taken out of it (``lumen_level``): the blur darkens a
+image's own blur (``intensity.edge_blur``), widened along a thicker voxel's
+axis by the rest of its boxcar (``axis_blur``).  ``A`` is measured on the
+lumen's core with the blur taken out of it (``lumen_level``): the blur darkens a
 core near its wall and in a narrow vessel, and the plain mean of the core of
 a 4 mm vessel blurred by 0.8 mm, 4 % low, moves its wall out by 0.08 mm.
 ``B`` varies around the vessel
