@@ -70,7 +70,7 @@ behind a default.  ``--first-seed 30`` runs family cases the defaults were never
 developed on (seeds 30 and up): the check that a default holds beyond its own cases.
 
 ``--quick``: 3 family cases, a 128^3 large case timed once, no CTA, two
-analytic tubes (about 4 minutes on 2 cores; the full run about 30).
+analytic tubes (about 4 minutes on 2 cores; the full run about 50).
 """
 
 from __future__ import annotations
@@ -735,7 +735,7 @@ def main() -> None:
     seeds = range(args.first_seed, args.first_seed + n_cases)
     git = git_state()
     log(f"git {git['commit'][:12]} dirty={git['dirty']}; VMTK available: {_vmtk.vmtk_available()}; "
-        f"{n_cases} family cases; load average {os.getloadavg()}")
+        f"{n_cases} family cases (seeds {seeds.start}-{seeds.stop - 1}); load average {os.getloadavg()}")
 
     # Warm-up: numba compiles carotid's kernels on the first call (~100 s); not part of any case's time.
     warm = make_phantom(0.7, 20.0, 0, extent=(30.0, 30.0, 45.0))

@@ -232,8 +232,9 @@ def test_the_refinement_reads_its_level_set_only_within_its_reach():
         return refine(image, np.clip(sdf, -at, at), spacing, A, B, blur, level_mm=10.0)
 
     near = np.abs(exact) < 1.0
-    np.testing.assert_array_equal(clamped(reach)[near], exact[near])
-    np.testing.assert_array_equal(clamped(reach) < 0, exact < 0)
+    at_reach = clamped(reach)
+    np.testing.assert_array_equal(at_reach[near], exact[near])
+    np.testing.assert_array_equal(at_reach < 0, exact < 0)
     # Mutation: clamped well within the model's reach (the bound is about twice what this case needs), the
     # wall moves.
     assert not np.array_equal(clamped(0.3 * reach)[near], exact[near])
