@@ -26,7 +26,9 @@ default 30; CT and MR, smooth, kinked and coiled ICAs, veins down to 0.3 mm
 from the artery, calcium from barely above the lumen to blooming).  Per method
 and case: Dice with the true lumen; mean, 95th percentile and maximum
 (Hausdorff) distance between the zero level set and the true wall (mm); leak
-(fraction of the result's voxels more than 1 mm outside the true lumen);
+(fraction of the result's voxels more than 1 mm outside the true lumen); extra
+handles (``metrics.topology`` of the result minus the true lumen's: a bridge
+no leak measure sees, listed per method in the summary's ``handles``);
 seconds; NASCET error (percentage points) = NASCET graded by
 ``compute_centerlines`` on the method's level set minus NASCET graded the same
 way on the true level set; minimal-diameter error (mm) = the graded minimal
@@ -95,7 +97,7 @@ from carotid.io import Volume, read_image
 from carotid.phantom import make_phantom
 from carotid.phantom.family import sample_family
 from carotid.segment import SegmentParameters, segment
-from carotid.segment.metrics import dice, surface_distances
+from carotid.segment.metrics import dice, surface_distances, topology
 
 CTA = Path("/work/shared/data/thoracic-cta-totalseg/models")
 CTA_SEED_MM = (24.3, -110.2, 717.2)  # descending aorta: bench_aorta.py's seed (deepest voxel of aorta.nii.gz)
@@ -263,7 +265,8 @@ def score(run: dict, phantom, truth_grade: dict) -> dict:
     out = {k: v for k, v in run.items() if k not in ("levelset", "mask")}
     voxels = int(inside.sum())
     out.update(status="ok", voxels=voxels, dice=dice(inside, truth_mask),
-               leak_fraction=float(np.count_nonzero(inside & (truth_sdf > LEAK_MM)) / max(voxels, 1)))
+               leak_fraction=float(np.count_nonzero(inside & (truth_sdf > LEAK_MM)) / max(voxels, 1)),
+               extra_handles=topology(inside)["handles"] - topology(truth_mask)["handles"])
     if voxels == 0:
         out.update(status="failed", error="empty segmentation")
         return out
@@ -615,6 +618,7 @@ def summarise(cases: list[dict], methods=METHODS) -> dict:
             m["meeting"][key] = int(sum(_meets(key, r.get(key)) for _, r in records if r.get("status") == "ok"))
         m["meeting"]["all_four"] = int(sum(all(_meets(k, r.get(k)) for k in CRITERIA) for _, r in records
                                            if r.get("status") == "ok"))
+        m["handles"] = {"cases_with_extra_handles": [seed for seed, r in ok if r.get("extra_handles", 0) > 0]}
         half = [(r.get("nascet_error_points_half_width"), r.get("min_diameter_error_mm_half_width"))
                 for _, r in ok if r.get("nascet_error_points_half_width") is not None]
         if half:

@@ -71,6 +71,26 @@ def test_segment_says_what_it_kept_out(tmp_path, capsys):
     assert np.count_nonzero(mask & sphere) > 0.9 * np.count_nonzero(sphere)
 
 
+def test_segment_warns_of_a_bridged_loop(tmp_path, capsys):
+    """Family case 37: an MR angiogram of a looped ICA whose limbs pass 0.9 mm apart across 0.93 mm slices.
+    The image does not resolve the gap, the lumen bridges it (one handle the true lumen does not have), and
+    the ICA's grade would follow the bridge: the command and the report's quality checks say so."""
+    from carotid.phantom import make_phantom, sample_family
+    from carotid.report.checks import quality_checks
+    from carotid.segment.metrics import topology
+
+    p = make_phantom(**sample_family(37))
+    assert topology(p.mask.array > 0)["handles"] == 0
+    image = write_image(p.image, tmp_path / "loop.nii.gz")
+    seeds = [a for name in ("CCA", "ICA", "ECA") for a in ("--seed", *p.info["seeds_mm"][name])]
+    code, out, _ = run_and_capture(capsys, ["segment", image, "-o", tmp_path / "case", *seeds])
+    assert code == 0 and "warning: the lumen has 1 handle(s)" in out
+    report = json.loads((tmp_path / "case" / "segmentation" / "report.json").read_text())
+    assert report["topology"] == {"components": 1, "handles": 1}
+    failed = [c.quantity for c in quality_checks(report, {}, {}, {}) if not c.passed]
+    assert failed == ["handles of the lumen (bridged vessels)"]
+
+
 def bad_inputs(tmp_path, phantom_dir):
     """(name, argv) pairs that must fail cleanly."""
     image = phantom_dir / "image.nii.gz"

@@ -7,7 +7,7 @@ from carotid.errors import CarotidError
 from carotid.phantom import LABELS
 from carotid.segment import SegmentParameters, segment
 from carotid.segment.init import seed_levelset
-from carotid.segment.metrics import dice, surface_distances
+from carotid.segment.metrics import dice, surface_distances, topology
 from conftest import ACCURACY_CASES, phantom
 
 
@@ -61,6 +61,22 @@ def test_outputs_are_a_signed_distance_and_a_report():
     report = result.report
     assert report["lumen_volume_mm3"] == pytest.approx(np.count_nonzero(phi < 0) * np.prod(p.image.spacing_kji))
     assert set(report["seconds"]) >= {"potential_s", "evolution_s", "total_s"}
+    assert report["topology"] == {"components": 1, "handles": 0}
+
+
+def test_topology_counts_components_and_handles_not_cavities():
+    z, y, x = np.mgrid[-20:21, -20:21, -20:21]
+    r = np.sqrt(x ** 2 + y ** 2 + z ** 2)
+    torus = np.hypot(np.hypot(x, y) - 10, z) < 4
+    assert topology(torus) == {"components": 1, "handles": 1}
+    assert topology(r < 10) == {"components": 1, "handles": 0}
+    assert topology((r < 10) & (r > 5)) == {"components": 1, "handles": 0}  # a cavity is no handle
+    rods = (np.abs(y) < 3) & (np.abs(np.abs(x) - 10) < 3)
+    assert topology(rods) == {"components": 2, "handles": 0}
+    # Two rods joined at both ends: a loop, one handle; touching diagonally (26-connected) still joins.
+    ring = rods | ((np.abs(y) < 3) & (np.abs(np.abs(z) - 15) < 2) & (np.abs(x) < 13))
+    assert topology(ring) == {"components": 1, "handles": 1}
+    assert topology(np.zeros((4, 4, 4), bool)) == {"components": 0, "handles": 0}
 
 
 def test_seed_outside_the_image_is_refused():

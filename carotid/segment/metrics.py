@@ -1,10 +1,12 @@
-"""Segmentation accuracy: Dice overlap and surface distances between zero level sets (mm)."""
+"""Segmentation accuracy: Dice overlap and surface distances between zero level sets (mm), and the lumen's
+topology."""
 
 from __future__ import annotations
 
 import numpy as np
+from scipy import ndimage
 from scipy.spatial import cKDTree
-from skimage.measure import marching_cubes
+from skimage.measure import euler_number, marching_cubes
 
 
 def dice(a: np.ndarray, b: np.ndarray) -> float:
@@ -97,3 +99,31 @@ def surface_distances(phi_a: np.ndarray, phi_b: np.ndarray, spacing_kji) -> dict
     both = np.concatenate([ab, ba])
     return {"mean": float(0.5 * (ab.mean() + ba.mean())), "hd95": float(np.percentile(both, 95)),
             "max": float(both.max())}
+
+
+def topology(mask: np.ndarray) -> dict:
+    """Connected components and handles of a lumen (26-connected), its cavities filled.
+
+    A vessel tree is one component without handles (genus 0).  A handle is a second path between two of its
+    parts: two limbs of a looped artery, or an artery and a vein, bridged where the image does not resolve
+    the gap between them.  The centerlines may then take the bridge, and a flow simulation would run
+    through it, while every voxel measure stays good (a bridge 0.5 mm outside the true wall is no leak).
+    With the cavities filled the Euler characteristic (``skimage.measure.euler_number``) is ``components -
+    handles``.
+
+    Parameters
+    ----------
+    mask : ndarray of bool, shape (nk, nj, ni)
+
+    Returns
+    -------
+    dict
+        ``components`` and ``handles`` (ints).
+    """
+    found = ndimage.find_objects(np.asarray(mask, np.uint8))
+    if not found or found[0] is None:
+        return {"components": 0, "handles": 0}
+    filled = np.pad(ndimage.binary_fill_holes(mask[found[0]]), 1)
+    components = int(ndimage.label(filled, structure=np.ones((3, 3, 3), bool))[1])
+    return {"components": components, "handles": components - int(euler_number(filled, connectivity=3))}
+

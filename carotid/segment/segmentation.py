@@ -26,6 +26,7 @@ from carotid.segment.init import automatic_region, check_points, mask_levelset, 
 from carotid.segment.intensity import (IntensityModel, estimate_from_sample, local_level, local_radius,
                                        provisional_window)
 from carotid.segment.levelset import evolve, signed_distance
+from carotid.segment.metrics import topology
 from carotid.segment.potential import gpf_potential
 from carotid.segment.preprocess import denoise, edge_stopping, window_hu
 from carotid.segment.wall import outer_wall, trunk
@@ -613,6 +614,7 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
         "converged": all(converged),
         "seconds": timings,
         "lumen_volume_mm3": float(mask.sum() * np.prod(spacing)),
+        "topology": topology(mask > 0),
         "wall": wall_report,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "image": {"shape_kji": list(volume.array.shape), "spacing_mm": list(volume.spacing),
