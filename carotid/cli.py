@@ -123,8 +123,9 @@ def cmd_segment(args) -> int:
     print(f"segmentation written to {out}: lumen {rep['lumen_volume_mm3']:.0f} mm^3, {wall}"
           f"{sum(rep['iterations'])} iterations, {state}, {rep['seconds']['total_s']:.1f} s")
     if rep["topology"]["handles"]:
-        print(f"warning: the lumen has {rep['topology']['handles']} handle(s): two vessels, or two parts of one, are "
-              "bridged where the image does not resolve the gap between them; check the centerlines and the grade")
+        print(f"warning: the lumen has {rep['topology']['handles']} handle(s), where a vessel tree has none: vessels "
+              "bridged where the image does not resolve the gap between them, or tunnels through the lumen; check the "
+              "centerlines and the grade")
     for found in rep["chambers"] or []:
         ratio = rep["parameters"]["chamber_ratio"]
         print(f"kept out of the lumen: {found['cores']} chamber(s) wider than {ratio:g} x the vessel's "

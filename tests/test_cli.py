@@ -88,7 +88,7 @@ def test_segment_warns_of_a_bridged_loop(tmp_path, capsys):
     report = json.loads((tmp_path / "case" / "segmentation" / "report.json").read_text())
     assert report["topology"] == {"components": 1, "handles": 1}
     failed = [c.quantity for c in quality_checks(report, {}, {}, {}) if not c.passed]
-    assert failed == ["handles of the lumen (bridged vessels)"]
+    assert failed == ["handles of the lumen (a vessel tree has none)"]
 
 
 def bad_inputs(tmp_path, phantom_dir):

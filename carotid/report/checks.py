@@ -90,7 +90,7 @@ def quality_checks(segmentation: dict, surface: dict, mesh: dict, flow: dict) ->
     """
     rows = [
         ("segmentation", "level set converged", _get(segmentation, "converged"), "yes", lambda v: bool(v)),
-        ("segmentation", "handles of the lumen (bridged vessels)", _get(segmentation, "topology.handles"), "0",
+        ("segmentation", "handles of the lumen (a vessel tree has none)", _get(segmentation, "topology.handles"), "0",
          lambda v: v == 0),
         ("surface", "watertight", _get(surface, "watertight"), "yes", lambda v: bool(v)),
         ("surface", "self-intersections", _get(surface, "self_intersections"), "0", lambda v: v == 0),

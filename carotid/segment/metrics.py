@@ -106,8 +106,10 @@ def topology(mask: np.ndarray) -> dict:
 
     A vessel tree is one component without handles (genus 0).  A handle is a second path between two of its
     parts: two limbs of a looped artery, or an artery and a vein, bridged where the image does not resolve
-    the gap between them.  The centerlines may then take the bridge, and a flow simulation would run
-    through it, while every voxel measure stays good (a bridge 0.5 mm outside the true wall is no leak).
+    the gap between them (the centerlines may then take the bridge, and a flow simulation would run through
+    it, while every voxel measure stays good: a bridge 0.5 mm outside the true wall is no leak); or a tunnel
+    through the lumen, a hole a voxel or two wide through a thin part of the mask.  The count does not tell
+    the two apart: a morphological closing would fill the tunnels but also join limbs a voxel or two apart.
     With the cavities filled the Euler characteristic (``skimage.measure.euler_number``) is ``components -
     handles``.
 
