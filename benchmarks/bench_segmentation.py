@@ -698,6 +698,18 @@ def parse_variant(text: str) -> dict:
     return out
 
 
+def count(text: str) -> int:
+    """A non-negative integer (the ``type`` of ``--cases`` and ``--first-seed``): anything else makes argparse
+    print one line and exit with status 2, instead of the family's traceback on a negative seed."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a non-negative integer")
+    return value
+
+
 def run_variants(variants: dict[str, dict], seeds) -> dict:
     """carotid (one seed per branch) with the defaults and with each variant on the same family cases, scored
     like the main run: the sweep behind a default, reproducible from the repository."""
@@ -722,8 +734,8 @@ def main() -> None:
     ``--variant``)."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="3 family cases, a 128^3 large case, no CTA")
-    parser.add_argument("--cases", type=int, default=None, help="number of family cases (default 30)")
-    parser.add_argument("--first-seed", type=int, default=0,
+    parser.add_argument("--cases", type=count, default=None, help="number of family cases (default 30)")
+    parser.add_argument("--first-seed", type=count, default=0,
                         help="family seed of the first case (default 0; the defaults were developed on 0-29)")
     parser.add_argument("--large-only", action="store_true",
                         help="only the 256^3 speed case, against GAC (results/segmentation_large.json): the speed "
