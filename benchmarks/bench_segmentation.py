@@ -181,7 +181,8 @@ def run_carotid(volume: Volume, seeds, params: SegmentParameters | None = None) 
     result, seconds = timed(segment, volume, seeds_xyz=seeds, params=params or SegmentParameters())
     return {"levelset": np.asarray(result.levelset.array, np.float32), "mask": result.mask.array > 0,
             "seconds": seconds, "iterations": result.report["iterations"], "converged": result.report["converged"],
-            "stage_seconds": result.report["seconds"]}
+            "stage_seconds": result.report["seconds"],
+            "handles_removed": sum(c["handles_removed"] for c in result.report["handles_removed"])}
 
 
 def run_vmtk(volume: Volume, seeds, threshold: float) -> dict:
@@ -502,7 +503,7 @@ def run_cta(with_gac: bool) -> dict:
            "seed_in_true_lumen": bool(masks["aorta_true_lumen"][tuple(kji)]), "methods": {}}
 
     def overlap(mask):
-        row = {"voxels": int(mask.sum())}
+        row = {"voxels": int(mask.sum()), "handles": topology(mask)["handles"]}
         for name, ref in masks.items():
             hits = np.count_nonzero(mask & ref)
             row[f"dice_{name}"] = dice(mask, ref)
@@ -522,7 +523,7 @@ def run_cta(with_gac: bool) -> dict:
             log(f"CTA {name}: Dice true lumen {record['dice_aorta_true_lumen']:.3f}, aorta "
                 f"{record['dice_aorta']:.3f}; sensitivity / precision (true lumen) "
                 f"{record['sensitivity_aorta_true_lumen']:.3f} / {record['precision_aorta_true_lumen']:.3f}; "
-                f"{record['seconds']:.1f} s")
+                f"{record['handles']} handle(s); {record['seconds']:.1f} s")
         out["methods"][name] = record
     return out
 
@@ -618,7 +619,8 @@ def summarise(cases: list[dict], methods=METHODS) -> dict:
             m["meeting"][key] = int(sum(_meets(key, r.get(key)) for _, r in records if r.get("status") == "ok"))
         m["meeting"]["all_four"] = int(sum(all(_meets(k, r.get(k)) for k in CRITERIA) for _, r in records
                                            if r.get("status") == "ok"))
-        m["handles"] = {"cases_with_extra_handles": [seed for seed, r in ok if r.get("extra_handles", 0) > 0]}
+        m["handles"] = {"cases_with_extra_handles": [seed for seed, r in ok if r.get("extra_handles", 0) > 0],
+                        "cases_with_handles_removed": [seed for seed, r in ok if r.get("handles_removed", 0) > 0]}
         half = [(r.get("nascet_error_points_half_width"), r.get("min_diameter_error_mm_half_width"))
                 for _, r in ok if r.get("nascet_error_points_half_width") is not None]
         if half:

@@ -43,7 +43,7 @@ def _segment_parameters(args):
         "alpha": args.alpha, "kernel_radius_mm": args.kernel_radius, "sigma_mm": args.sigma,
         "refine_radius_mm": args.refine_radius, "denoise_iterations": args.denoise,
         "seed_radius_mm": args.seed_radius, "max_iterations": args.max_iterations,
-        "chamber_ratio": args.chamber_ratio,
+        "chamber_ratio": args.chamber_ratio, "handle_mm": args.handles,
         "wall_trunk_mm": args.wall_trunk,
     }
     if args.hu_window:
@@ -126,6 +126,11 @@ def cmd_segment(args) -> int:
         print(f"warning: the lumen has {rep['topology']['handles']} handle(s), where a vessel tree has none: vessels "
               "bridged where the image does not resolve the gap between them, or tunnels through the lumen; check the "
               "centerlines and the grade")
+    for change in rep["handles_removed"]:
+        what = "cut a bridge" if change["kind"] == "cut" else "filled a tunnel"
+        print(f"removed {change['handles_removed']} handle(s) of the lumen: {what} of up to "
+              f"{2 * change['scale_mm']:.2f} mm, {change['voxels']} voxels at {change['centre_mm']} mm "
+              "(--handles 0 keeps them)")
     for found in rep["chambers"] or []:
         ratio = rep["parameters"]["chamber_ratio"]
         print(f"kept out of the lumen: {found['cores']} chamber(s) wider than {ratio:g} x the vessel's "
@@ -239,6 +244,10 @@ def _add_segment_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--chamber-ratio", type=float, metavar="R",
                    help="a region wider than R times the vessel at the seeds (a heart chamber) is kept out of the "
                         "lumen; 0 keeps it, e.g. an aneurysm (default 2)")
+    p.add_argument("--handles", type=float, metavar="MM",
+                   help="remove the lumen's handles (vessels bridged where the image does not resolve the gap "
+                        "between them, tunnels through the mask) by cutting bridges or filling tunnels up to 2 MM "
+                        "wide; 0 keeps them (default 1.5)")
     p.add_argument("--max-iterations", type=int, metavar="N", help="per stage (default 4000)")
     p.add_argument("--wall", action="store_true",
                    help="also segment the whole vessel (lumen, thrombus, wall): segmentation/wall_mask.nii.gz")

@@ -71,10 +71,14 @@ def test_segment_says_what_it_kept_out(tmp_path, capsys):
     assert np.count_nonzero(mask & sphere) > 0.9 * np.count_nonzero(sphere)
 
 
-def test_segment_warns_of_a_bridged_loop(tmp_path, capsys):
+def test_segment_cuts_a_bridged_loop_and_grades_the_artery_not_the_bridge(tmp_path, capsys):
     """Family case 37: an MR angiogram of a looped ICA whose limbs pass 0.9 mm apart across 0.93 mm slices.
-    The image does not resolve the gap, the lumen bridges it (one handle the true lumen does not have), and
-    the ICA's grade would follow the bridge: the command and the report's quality checks say so."""
+    The image does not resolve the gap and the front bridges it: a handle the true lumen does not have, which
+    the ICA's centerline would take as a shortcut (NASCET 78 points too high).  By default the bridge is cut
+    and the command says where; with ``--handles 0`` it stays, and the command and the report's quality checks
+    warn of it."""
+    from carotid.centerline import compute_centerlines
+    from carotid.centerline.features import stenosis
     from carotid.phantom import make_phantom, sample_family
     from carotid.report.checks import quality_checks
     from carotid.segment.metrics import topology
@@ -84,9 +88,22 @@ def test_segment_warns_of_a_bridged_loop(tmp_path, capsys):
     image = write_image(p.image, tmp_path / "loop.nii.gz")
     seeds = [a for name in ("CCA", "ICA", "ECA") for a in ("--seed", *p.info["seeds_mm"][name])]
     code, out, _ = run_and_capture(capsys, ["segment", image, "-o", tmp_path / "case", *seeds])
-    assert code == 0 and "warning: the lumen has 1 handle(s)" in out
+    assert code == 0 and "removed 1 handle(s) of the lumen: cut a bridge" in out and "warning" not in out
     report = json.loads((tmp_path / "case" / "segmentation" / "report.json").read_text())
-    assert report["topology"] == {"components": 1, "handles": 1}
+    assert report["topology"] == {"components": 1, "handles": 0}
+    assert [c["kind"] for c in report["handles_removed"]] == ["cut"]
+    assert all(c.passed for c in quality_checks(report, {}, {}, {}))
+    code, out, _ = run_and_capture(capsys, ["report", tmp_path / "case"])
+    assert code == 0 and "1: 1 bridge(s) cut, 0 tunnel(s) filled" in (tmp_path / "case" / "report.html").read_text()
+    levelset = read_image(tmp_path / "case" / "segmentation" / "levelset.nii.gz")
+    graded, true = (stenosis(compute_centerlines(volume).branch("ICA")) for volume in (levelset, p.sdf))
+    assert abs(graded["nascet"] - true["nascet"]) <= 0.05
+    assert abs(graded["min_diameter_mm"] - true["min_diameter_mm"]) <= 0.25
+
+    code, out, _ = run_and_capture(capsys, ["segment", image, "-o", tmp_path / "kept", *seeds, "--handles", "0"])
+    assert code == 0 and "warning: the lumen has 1 handle(s)" in out and "removed" not in out
+    report = json.loads((tmp_path / "kept" / "segmentation" / "report.json").read_text())
+    assert report["topology"] == {"components": 1, "handles": 1} and report["handles_removed"] == []
     failed = [c.quantity for c in quality_checks(report, {}, {}, {}) if not c.passed]
     assert failed == ["handles of the lumen (a vessel tree has none)"]
 
@@ -116,6 +133,7 @@ def bad_inputs(tmp_path, phantom_dir):
         ("seed outside", ["segment", image, "--seed", "0", "0", "900"]),
         ("bad parameter", ["segment", image, "--alpha", "2"]),
         ("bad chamber ratio", ["segment", image, "--chamber-ratio", "0.5"]),
+        ("negative handle width", ["segment", image, "--handles", "-1"]),
         ("truncated file", ["segment", cut]),
         ("initial region on another grid", ["segment", image, "--init-mask", shifted]),
     ]

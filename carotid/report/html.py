@@ -667,9 +667,20 @@ def segmentation_section(case: Case) -> Section:
     else:
         section.note = f"CT slices omitted: {reason}."
     report = case.segmentation
-    keep = ("method", "initialisation", "iterations", "converged", "lumen_volume_mm3", "seconds", "peak_rss_mb",
-            "intensity")
-    section.tables.append(Table("Result", flatten({k: report[k] for k in keep if k in report})))
+    keep = ("method", "initialisation", "iterations", "converged", "lumen_volume_mm3", "topology", "seconds",
+            "peak_rss_mb", "intensity")
+    changes = report.get("handles_removed") or []
+    kinds = [c["kind"] for c in changes]
+    removed = {"handles_removed": f"{sum(c['handles_removed'] for c in changes)}: {kinds.count('cut')} bridge(s) "
+               f"cut, {kinds.count('fill')} tunnel(s) filled, {sum(c['voxels'] for c in changes)} voxels (places in "
+               "report.json)"} if changes else {}
+    result = {}
+    for key in keep:
+        if key in report:
+            result[key] = report[key]
+        if key == "topology":
+            result.update(removed)
+    section.tables.append(Table("Result", flatten(result)))
     section.tables.append(Table("Parameters", flatten(active_parameters(report.get("parameters", {})))))
     section.tables.append(checks_table(quality_checks(report, {}, {}, {})))
     return section

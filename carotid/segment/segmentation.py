@@ -22,6 +22,7 @@ from carotid.segment.barrier import (chamber_cores, chamber_neck, competing_regi
                                      half_maximum_speed, point_mask, under_enhanced)
 from carotid.segment.calcium import hyperdense_edge
 from carotid.segment.deblur import reach_mm, refine
+from carotid.segment.handles import remove_handles
 from carotid.segment.init import automatic_region, check_points, mask_levelset, seed_levelset, seed_sample
 from carotid.segment.intensity import (IntensityModel, estimate_from_sample, local_level, local_radius,
                                        provisional_window)
@@ -100,6 +101,9 @@ class SegmentParameters:
         Blur that refinement's model along each axis by the measured blur plus the part of the voxel's
         boxcar beyond the finest axis's (``deblur.axis_blur``): thick slices blur a throat along the vessel
         more than within the slices.  False: the measured blur along every axis.
+    handle_mm : float
+        Largest half-width (mm) of a bridge cut or a tunnel filled to remove the lumen's handles, which a vessel
+        tree does not have (``handles`` module); 0 keeps them.
     denoise_iterations : int
         Curvature anisotropic diffusion iterations before the potential (0: off).
     kernel_radius_mm : float
@@ -173,6 +177,7 @@ class SegmentParameters:
     deblur_gain: float = 2.0
     deblur_smooth_mm: float = 1.0
     deblur_slices: bool = True
+    handle_mm: float = 1.5
     denoise_iterations: int = 0
     kernel_radius_mm: float = 10.0
     sigma_mm: float = 0.6
@@ -232,6 +237,7 @@ class SegmentParameters:
             (0 < self.cfl < 1, "cfl must lie in (0, 1)"),
             (self.max_iterations > 0, "max_iterations must be positive"),
             (self.denoise_iterations >= 0, "denoise_iterations must not be negative"),
+            (self.handle_mm >= 0, "handle_mm must not be negative"),
             (self.deblur_iterations >= 0 and self.deblur_gain > 0 and self.deblur_smooth_mm >= 0,
              "deblur_iterations and deblur_smooth_mm must not be negative, deblur_gain must be positive"),
             (self.wall_hu_low < self.wall_contrast_hu and (
@@ -582,6 +588,7 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
     if stopped is not None:
         inside &= ~stopped
     inside = keep_components(inside, seeds_kji, spacing)
+    inside, handles_removed = remove_handles(inside, spacing, params.handle_mm)
     phi = np.where(inside, np.minimum(phi, -1e-3), np.maximum(phi, 0)).astype(np.float32)
     phi = signed_distance(phi, spacing, params.far_mm)
     mask = (phi < 0).astype(np.uint8)
@@ -615,6 +622,9 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
         "seconds": timings,
         "lumen_volume_mm3": float(mask.sum() * np.prod(spacing)),
         "topology": topology(mask > 0),
+        "handles_removed": [{**{k: v for k, v in change.items() if k != "centre_kji"},
+                             "centre_mm": volume.index_to_world(change["centre_kji"]).round(1).tolist()}
+                            for change in handles_removed],
         "wall": wall_report,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "image": {"shape_kji": list(volume.array.shape), "spacing_mm": list(volume.spacing),

@@ -1,0 +1,88 @@
+"""Handles of a lumen mask removed by the thinnest cut or fill, on shapes whose answer is known by construction."""
+
+import numpy as np
+
+from carotid.segment.handles import remove_handles
+from carotid.segment.metrics import topology
+
+SPACING = np.array([0.6, 0.4, 0.4])  # anisotropic, array order (k, j, i)
+
+
+def grid(extent_mm=(36.0, 24.0, 24.0)):
+    """World coordinates (z, y, x) in mm of a grid of ``SPACING`` centred on the origin."""
+    axes = [(np.arange(int(e / h)) - (int(e / h) - 1) / 2) * h for e, h in zip(extent_mm, SPACING)]
+    return np.meshgrid(*axes, indexing="ij")
+
+
+def rod(points, a, b, radius):
+    """Voxels within ``radius`` (mm) of the segment from ``a`` to ``b`` (z, y, x in mm)."""
+    p = np.stack(points, axis=-1)
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    t = np.clip(((p - a) @ (b - a)) / ((b - a) @ (b - a)), 0.0, 1.0)
+    return np.linalg.norm(p - (a + t[..., None] * (b - a)), axis=-1) <= radius
+
+
+def looped_vessel(points):
+    """Two limbs of radius 2 mm, 3 mm apart wall to wall, joined at the top: a looped artery without a handle."""
+    return (rod(points, (-12, 0, -3.5), (12, 0, -3.5), 2.0) | rod(points, (-12, 0, 3.5), (12, 0, 3.5), 2.0)
+            | rod(points, (12, 0, -3.5), (12, 0, 3.5), 2.0))
+
+
+def test_a_bridge_between_two_limbs_is_cut_and_nothing_else():
+    points = grid()
+    loop = looped_vessel(points)
+    bridge = rod(points, (-4, 0, -3.5), (-4, 0, 3.5), 0.5)
+    assert topology(loop) == {"components": 1, "handles": 0}
+    assert topology(loop | bridge) == {"components": 1, "handles": 1}
+    out, changes = remove_handles(loop | bridge, SPACING, 1.5)
+    assert topology(out) == {"components": 1, "handles": 0}
+    assert [c["kind"] for c in changes] == ["cut"] and changes[0]["scale_mm"] <= 1.0
+    removed = (loop | bridge) & ~out
+    assert not (out & ~(loop | bridge)).any()
+    # Only the bridge goes, and only its part between the limbs' walls (a voxel of slack at the wall).
+    assert removed.any() and not (removed & ~rod(points, (-4, 0, -3.5), (-4, 0, 3.5), 0.5 + 0.4)).any()
+    assert not (removed & rod(points, (-12, 0, -3.5), (12, 0, -3.5), 2.0 - 0.6)).any()
+    assert np.allclose(changes[0]["centre_kji"][1:], (np.array(out.shape[1:]) - 1) / 2, atol=1.0)
+
+
+def test_a_tunnel_through_the_lumen_is_filled():
+    points = grid()
+    z, y, x = points
+    tube = np.hypot(y, x) <= 4.0
+    hole = rod(points, (0, -5, 0), (0, 5, 0), 0.5)
+    assert topology(tube & ~hole) == {"components": 1, "handles": 1}
+    out, changes = remove_handles(tube & ~hole, SPACING, 1.5)
+    assert topology(out) == {"components": 1, "handles": 0}
+    assert [c["kind"] for c in changes] == ["fill"]
+    added = out & ~(tube & ~hole)
+    assert added.any() and not (added & ~(hole & tube)).any() and not (~out & tube & ~hole).any()
+
+
+def test_no_part_of_the_lumen_is_dropped_to_remove_a_handle():
+    """A bridge one voxel thin that is also the only link to a side branch: any cut that opens the loop also
+    drops the branch, so the handle stays."""
+    points = grid()
+    lumen = looped_vessel(points)
+    k, j, i = (np.array(lumen.shape) - 1) // 2
+    lumen[k, j, :] |= np.abs(points[2][k, j, :]) <= 3.5  # the bridge, along x between the limbs' axes
+    lumen[k, j:j + 15, i] = True  # a stalk 6 mm long, along y from the bridge's middle
+    tip = [points[0][k, j, i], points[1][k, j + 14, i] + 2.4, points[2][k, j, i]]
+    lumen |= np.linalg.norm(np.stack(points, -1) - tip, axis=-1) <= 2.5  # its branch, a ball
+    assert topology(lumen) == {"components": 1, "handles": 1}
+    out, changes = remove_handles(lumen, SPACING, 1.5)
+    assert changes == [] and np.array_equal(out, lumen)
+
+
+def test_stenoses_and_loops_wider_than_the_limit_are_left_alone():
+    points = grid()
+    z, y, x = points
+    radius = np.where(np.abs(z) < 2.0, 0.5, 2.5)  # a throat 1 mm wide
+    stenosed = np.hypot(y, x) <= radius
+    out, changes = remove_handles(stenosed, SPACING, 1.5)
+    assert out is stenosed and changes == []
+    ring = np.hypot(np.hypot(z / 1.5, y) - 7.0, x) <= 2.5  # a loop 5 mm thick: no bridge of a blurred gap
+    out, changes = remove_handles(ring, SPACING, 1.5)
+    assert changes == [] and topology(out) == {"components": 1, "handles": 1}
+    out, changes = remove_handles(looped_vessel(points) | rod(points, (-4, 0, -3.5), (-4, 0, 3.5), 0.5),
+                                  SPACING, 0.0)
+    assert changes == [] and topology(out)["handles"] == 1
