@@ -128,8 +128,8 @@ def cmd_segment(args) -> int:
               "centerlines and the grade")
     for change in rep["handles_removed"]:
         what = "cut a bridge" if change["kind"] == "cut" else "filled a tunnel"
-        print(f"removed {change['handles_removed']} handle(s) of the lumen: {what} of up to "
-              f"{2 * change['scale_mm']:.2f} mm, {change['voxels']} voxels at {change['centre_mm']} mm "
+        print(f"removed {change['handles_removed']} handle(s) of the lumen: {what} up to "
+              f"{2 * change['scale_mm']:.2f} mm wide, {change['voxels']} voxels at {change['centre_mm']} mm "
               "(--handles 0 keeps them)")
     for found in rep["chambers"] or []:
         ratio = rep["parameters"]["chamber_ratio"]

@@ -649,6 +649,16 @@ def convergence_html(case: Case) -> str:
     return f'<div class="more" id="convergence"><div>{parts[0]}</div>{parts[1]}</div>'
 
 
+def handles_removed_row(changes: list[dict]) -> dict:
+    """``{"handles_removed": summary}`` of the segmentation's ``handles_removed`` record; empty without changes."""
+    if not changes:
+        return {}
+    kinds = [c["kind"] for c in changes]
+    return {"handles_removed": f"{sum(c['handles_removed'] for c in changes)}: {kinds.count('cut')} bridge(s) cut, "
+                               f"{kinds.count('fill')} tunnel(s) filled, {sum(c['voxels'] for c in changes)} voxels "
+                               "(places in report.json)"}
+
+
 def segmentation_section(case: Case) -> Section:
     """Input slices with the lumen contour, and the segmentation record."""
     section = Section("Segmentation")
@@ -669,17 +679,12 @@ def segmentation_section(case: Case) -> Section:
     report = case.segmentation
     keep = ("method", "initialisation", "iterations", "converged", "lumen_volume_mm3", "topology", "seconds",
             "peak_rss_mb", "intensity")
-    changes = report.get("handles_removed") or []
-    kinds = [c["kind"] for c in changes]
-    removed = {"handles_removed": f"{sum(c['handles_removed'] for c in changes)}: {kinds.count('cut')} bridge(s) "
-               f"cut, {kinds.count('fill')} tunnel(s) filled, {sum(c['voxels'] for c in changes)} voxels (places in "
-               "report.json)"} if changes else {}
     result = {}
     for key in keep:
         if key in report:
             result[key] = report[key]
         if key == "topology":
-            result.update(removed)
+            result.update(handles_removed_row(report.get("handles_removed") or []))
     section.tables.append(Table("Result", flatten(result)))
     section.tables.append(Table("Parameters", flatten(active_parameters(report.get("parameters", {})))))
     section.tables.append(checks_table(quality_checks(report, {}, {}, {})))
