@@ -1,8 +1,10 @@
 """Handles of a lumen mask removed by the thinnest cut or fill, on shapes whose answer is known by construction."""
 
 import numpy as np
+from scipy import ndimage
+from skimage.measure import euler_number
 
-from carotid.segment.handles import remove_handles
+from carotid.segment.handles import euler_changes, remove_handles
 from carotid.segment.metrics import topology
 
 SPACING = np.array([0.6, 0.4, 0.4])  # anisotropic, array order (k, j, i)
@@ -45,17 +47,20 @@ def test_a_bridge_between_two_limbs_is_cut_and_nothing_else():
     assert np.allclose(changes[0]["centre_kji"][1:], (np.array(out.shape[1:]) - 1) / 2, atol=1.0)
 
 
-def test_a_tunnel_through_the_lumen_is_filled():
+def test_a_tunnel_through_the_lumen_is_filled_and_nothing_else():
+    """A 1 mm tunnel through a 4 mm tube is filled.  A pocket opening through a 0.8 mm neck is no handle, and
+    its neck stays open (filling it would enclose a cavity)."""
     points = grid()
     z, y, x = points
-    tube = np.hypot(y, x) <= 4.0
     hole = rod(points, (0, -5, 0), (0, 5, 0), 0.5)
-    assert topology(tube & ~hole) == {"components": 1, "handles": 1}
-    out, changes = remove_handles(tube & ~hole, SPACING, 1.5)
+    pocket = rod(points, (8, 0, 0), (8, 0, 0.01), 2.0) | rod(points, (8, 0, 0), (8, 0, 5), 0.4)
+    lumen = (np.hypot(y, x) <= 4.0) & ~hole & ~pocket
+    assert topology(lumen) == {"components": 1, "handles": 1}
+    out, changes = remove_handles(lumen, SPACING, 1.5)
     assert topology(out) == {"components": 1, "handles": 0}
     assert [c["kind"] for c in changes] == ["fill"]
-    added = out & ~(tube & ~hole)
-    assert added.any() and not (added & ~(hole & tube)).any() and not (~out & tube & ~hole).any()
+    added = out & ~lumen
+    assert added.any() and not (added & ~hole).any() and not (lumen & ~out).any()
 
 
 def test_no_part_of_the_lumen_is_dropped_to_remove_a_handle():
@@ -86,3 +91,13 @@ def test_stenoses_and_loops_wider_than_the_limit_are_left_alone():
     out, changes = remove_handles(looped_vessel(points) | rod(points, (-4, 0, -3.5), (-4, 0, 3.5), 0.5),
                                   SPACING, 0.0)
     assert changes == [] and topology(out)["handles"] == 1
+
+
+def test_the_euler_characteristic_of_each_piece_matches_scikit_image():
+    rng = np.random.default_rng(3)
+    for _ in range(40):
+        mask = rng.random((9, 11, 10)) < rng.uniform(0.2, 0.8)
+        labels, n = ndimage.label(rng.random(mask.shape) < 0.12, structure=np.ones((3, 3, 3), bool))
+        change = euler_changes(mask, labels, n)
+        base = euler_number(mask, connectivity=3)
+        assert all(change[i] == euler_number(mask ^ (labels == i), connectivity=3) - base for i in range(1, n + 1))

@@ -16,7 +16,7 @@ Each handle is removed by the smallest morphological change that removes it.  At
 each connected piece on its own, the smallest first.  A piece is flipped when that lowers the count of handles
 and adds no component: a cut that would split the tree, through a stenosis' throat or a thin branch, is refused.
 The Euler characteristic, which a piece that removes a handle raises by one and which is a sum of local terms,
-screens the pieces on their own boxes; the global count (``metrics.topology``) confirms.
+screens all pieces at once (``euler_changes``); the global count (``metrics.topology``) confirms.
 
 Topology alone does not tell a bridge from a throat in the same loop: where a stenosis within the loop is
 thinner than the bridge, the throat is cut instead.  Every change is reported with its place and size, for
@@ -38,16 +38,61 @@ from carotid.segment.metrics import topology
 NEIGHBOURS_26 = np.ones((3, 3, 3), bool)
 
 
-def opening_removes(inside: np.ndarray, spacing_kji: np.ndarray, t: float) -> np.ndarray:
-    """Voxels of ``inside`` that an opening by a ball of radius ``t`` (mm) removes: parts thinner than ``2 t``."""
-    core = ndimage.distance_transform_edt(inside, sampling=spacing_kji) > t
-    return inside & (ndimage.distance_transform_edt(~core, sampling=spacing_kji) > t)
+def opening_removes(inside: np.ndarray, depth: np.ndarray, spacing_kji: np.ndarray, t: float) -> np.ndarray:
+    """Voxels of ``inside`` that an opening by a ball of radius ``t`` (mm) removes: parts thinner than ``2 t``.
+
+    ``depth`` is the distance (mm) of each voxel of ``inside`` to the outside (``distance_transform_edt``).
+    """
+    return inside & (ndimage.distance_transform_edt(depth <= t, sampling=spacing_kji) > t)
 
 
-def closing_adds(inside: np.ndarray, spacing_kji: np.ndarray, t: float) -> np.ndarray:
-    """Voxels outside ``inside`` that a closing by a ball of radius ``t`` (mm) adds: gaps narrower than ``2 t``."""
-    grown = ndimage.distance_transform_edt(~inside, sampling=spacing_kji) <= t
-    return ~inside & (ndimage.distance_transform_edt(grown, sampling=spacing_kji) > t)
+def closing_adds(inside: np.ndarray, distance: np.ndarray, spacing_kji: np.ndarray, t: float) -> np.ndarray:
+    """Voxels outside ``inside`` that a closing by a ball of radius ``t`` (mm) adds: gaps narrower than ``2 t``.
+
+    ``distance`` is the distance (mm) of each voxel outside ``inside`` to it.
+    """
+    return ~inside & (ndimage.distance_transform_edt(distance <= t, sampling=spacing_kji) > t)
+
+
+def euler_changes(inside: np.ndarray, labels: np.ndarray, n: int) -> np.ndarray:
+    """Change of the Euler characteristic (26-connected) of ``inside`` when each labelled piece alone flips.
+
+    With 26-connectivity a mask is the union of its voxels as closed unit cubes, whose Euler characteristic
+    counts the lattice's vertices, edges and faces the union covers, and its cubes: ``V - E + F - C``.  A
+    cell of the lattice is covered when one of the 2, 4 or 8 voxels around it is in the mask, and the pieces
+    (26-connected components of the candidates) never share a cell, so each covered cell that the flip adds
+    or removes counts towards the one piece around it.
+
+    Parameters
+    ----------
+    inside : ndarray of bool, shape (nk, nj, ni)
+    labels : ndarray of int, same shape
+        The pieces, 1 to ``n``; 0 elsewhere.
+    n : int
+
+    Returns
+    -------
+    ndarray of int, shape (n + 1,)
+        Entry ``i`` for piece ``i`` (entry 0 unused).
+    """
+    before = np.pad(inside, 1)
+    piece = np.pad(labels, 1)
+    after = before ^ (piece > 0)
+    change = np.zeros(n + 1, np.int64)
+    # Cells around a block of 2 voxels along each of ``axes``: vertices (3 axes), edges (2), faces (1), cubes.
+    for sign, axes in ((1, (0, 1, 2)), (-1, (1, 2)), (-1, (0, 2)), (-1, (0, 1)), (1, (0,)), (1, (1,)), (1, (2,)),
+                       (-1, ())):
+        covered_before, covered_after, owner = before, after, piece
+        for axis in axes:
+            low = tuple(slice(0, -1) if a == axis else slice(None) for a in range(3))
+            high = tuple(slice(1, None) if a == axis else slice(None) for a in range(3))
+            covered_before = covered_before[low] | covered_before[high]
+            covered_after = covered_after[low] | covered_after[high]
+            owner = np.maximum(owner[low], owner[high])
+        moved = covered_after != covered_before
+        change += sign * np.bincount(owner[moved], weights=np.where(covered_after[moved], 1, -1),
+                                     minlength=n + 1).astype(np.int64)
+    return change
 
 
 def flip_pieces(inside: np.ndarray, candidates: dict, state: dict, t: float) -> list[dict]:
@@ -72,23 +117,25 @@ def flip_pieces(inside: np.ndarray, candidates: dict, state: dict, t: float) -> 
     """
     pieces = []
     for kind, region in candidates.items():
-        labels, _ = ndimage.label(region, structure=NEIGHBOURS_26)
+        labels, n = ndimage.label(region, structure=NEIGHBOURS_26)
         sizes = np.bincount(labels.ravel())
-        pieces += [(sizes[n], kind, labels, n, box) for n, box in enumerate(ndimage.find_objects(labels), 1)]
+        rises = euler_changes(inside, labels, n)
+        # A piece that removes a handle raises the Euler characteristic by one; the others cannot.
+        pieces += [(sizes[number], kind, labels, number, box) for number, box in
+                   enumerate(ndimage.find_objects(labels), 1) if rises[number] > 0]
     done = []
     for size, kind, labels, number, box in sorted(pieces, key=lambda piece: piece[0]):
         if not state["handles"]:
             break
-        # The Euler characteristic is a sum over 2x2x2 windows: the piece's box grown by two voxels holds its change.
-        grown = tuple(slice(max(s.start - 2, 0), s.stop + 2) for s in box)
+        grown = tuple(slice(max(s.start - 1, 0), s.stop + 1) for s in box)
         local = labels[grown] == number
-        before = inside[grown]
-        if int(euler_number(before ^ local, connectivity=3)) <= int(euler_number(before, connectivity=3)):
-            continue
         trial = inside.copy()
         trial[grown] ^= local
+        # A fill cannot add a component that removes a handle; a cut can split the tree, and is refused then.
+        if kind == "cut" and ndimage.label(trial, structure=NEIGHBOURS_26)[1] > state["components"]:
+            continue
         after = topology(trial)
-        if after["handles"] < state["handles"] and after["components"] <= state["components"]:
+        if after["handles"] < state["handles"]:
             inside[...] = trial
             offset = np.array([s.start for s in grown])
             done.append({"kind": kind, "scale_mm": round(float(t), 3), "voxels": int(size),
@@ -126,12 +173,18 @@ def remove_handles(inside: np.ndarray, spacing_kji, max_mm: float) -> tuple[np.n
     box = ndimage.find_objects(inside.astype(np.uint8))[0]
     box = tuple(slice(max(s.start - m, 0), min(s.stop + m, n)) for s, m, n in zip(box, margin, inside.shape))
     crop = inside[box].copy()
-    changes = []
+    changes, depth = [], None
     for t in step * np.arange(1, int(np.floor(max_mm / step + 1e-6)) + 1):
-        changes += flip_pieces(crop, {"fill": closing_adds(crop, spacing_kji, t),
-                                      "cut": opening_removes(crop, spacing_kji, t)}, state, t)
+        if depth is None:  # the distances to the wall, from either side, until a piece flips
+            depth = ndimage.distance_transform_edt(crop, sampling=spacing_kji)
+            distance = ndimage.distance_transform_edt(~crop, sampling=spacing_kji)
+        flipped = flip_pieces(crop, {"fill": closing_adds(crop, distance, spacing_kji, t),
+                                     "cut": opening_removes(crop, depth, spacing_kji, t)}, state, t)
+        changes += flipped
         if not state["handles"]:
             break
+        if flipped:
+            depth = None
     out = inside.copy()
     out[box] = crop
     offset = np.array([s.start for s in box])
