@@ -34,9 +34,7 @@ import numpy as np
 from scipy import ndimage
 from skimage.measure import euler_number
 
-from carotid.segment.metrics import topology
-
-NEIGHBOURS_26 = np.ones((3, 3, 3), bool)
+from carotid.segment.metrics import NEIGHBOURS_26, topology
 
 
 def opening_removes(inside: np.ndarray, depth: np.ndarray, spacing_kji: np.ndarray, t: float) -> np.ndarray:

@@ -8,6 +8,8 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 from skimage.measure import euler_number, marching_cubes
 
+NEIGHBOURS_26 = np.ones((3, 3, 3), bool)
+
 
 def dice(a: np.ndarray, b: np.ndarray) -> float:
     """Dice coefficient ``2|A and B| / (|A| + |B|)`` of two binary arrays of the same shape."""
@@ -126,6 +128,6 @@ def topology(mask: np.ndarray) -> dict:
     if not found or found[0] is None:
         return {"components": 0, "handles": 0}
     filled = np.pad(ndimage.binary_fill_holes(mask[found[0]]), 1)
-    components = int(ndimage.label(filled, structure=np.ones((3, 3, 3), bool))[1])
+    components = int(ndimage.label(filled, structure=NEIGHBOURS_26)[1])
     return {"components": components, "handles": components - int(euler_number(filled, connectivity=3))}
 
