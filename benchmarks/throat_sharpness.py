@@ -54,7 +54,8 @@ def throat_bend(phantom) -> dict:
     dict
         ``narrow_radius_mm`` (half the narrowest diameter), ``voxel_mm`` (largest voxel size h),
         ``rise_mm`` (mean narrow radius one voxel either side, minus the narrowest; interpolated along the
-        axis), ``bend_radius_mm`` (``h^2 / (2 rise)``), ``resolved`` (bend radius >= h).
+        axis), ``bend_radius_mm`` (``h^2 / (2 rise)``; None where the profile does not rise), ``resolved``
+        (bend radius >= h).
     """
     grid = phantom.image
     cl = compute_centerlines(grid.with_array(np.asarray(phantom.sdf.array, np.float32)),
@@ -64,9 +65,9 @@ def throat_bend(phantom) -> dict:
     k = int(np.argmin(narrow[1:-1])) + 1  # the end samples read the junction and the image's face
     h = float(max(grid.spacing_kji))
     rise = 0.5 * (np.interp(s[k] - h, s, narrow) + np.interp(s[k] + h, s, narrow)) - narrow[k]
-    bend = h * h / (2.0 * rise) if rise > 0 else float("inf")
+    bend = h * h / (2.0 * rise) if rise > 0 else None  # None: no bend (the profile does not rise)
     return {"narrow_radius_mm": float(narrow[k]), "voxel_mm": h, "rise_mm": float(rise), "bend_radius_mm": bend,
-            "resolved": bool(bend >= h)}
+            "resolved": bend is None or bend >= h}
 
 
 def passes(record: dict) -> bool:
@@ -100,7 +101,7 @@ def main() -> None:
                    "min_diameter_error_mm": record.get("min_diameter_error_mm"), "all_four": passes(record)}
             rows.append(row)
             log(f"case {seed:2d}: rise {row['rise_mm']:.3f} mm within {row['voxel_mm']:.2f} mm, bend radius "
-                f"{row['bend_radius_mm']:.2f} mm ({'resolved' if row['resolved'] else 'sub-voxel'}), "
+                f"{row['bend_radius_mm'] or float('inf'):.2f} mm ({'resolved' if row['resolved'] else 'sub-voxel'}), "
                 f"{'passes' if row['all_four'] else 'fails'}")
         sets[filename] = {"method": method, "results_commit": data["git"]["commit"], "cases": rows,
                           "summary": split(rows)}
