@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import numpy as np
 from scipy import ndimage
-from skimage.measure import euler_number
 
 from carotid.segment.metrics import NEIGHBOURS_26, topology
 
