@@ -591,6 +591,11 @@ def _meets(key: str, value) -> bool:
     return {">=": value >= limit, "<": value < limit, "abs<=": abs(value) <= limit}[op]
 
 
+def meets_all(record: dict) -> bool:
+    """Whether a scored run meets every one of ``CRITERIA`` (the "all four" count)."""
+    return all(_meets(key, record.get(key)) for key in CRITERIA)
+
+
 def summarise(cases: list[dict], methods=METHODS) -> dict:
     """Per method: medians, worst cases, failures and the counts meeting ``CRITERIA``; with the cases'
     ``centerline_peer``, VMTK's centerlines against carotid's."""
@@ -617,8 +622,7 @@ def summarise(cases: list[dict], methods=METHODS) -> dict:
                 m["mean_abs"][key] = float(np.mean(np.abs(v)))
         for key in CRITERIA:
             m["meeting"][key] = int(sum(_meets(key, r.get(key)) for _, r in records if r.get("status") == "ok"))
-        m["meeting"]["all_four"] = int(sum(all(_meets(k, r.get(k)) for k in CRITERIA) for _, r in records
-                                           if r.get("status") == "ok"))
+        m["meeting"]["all_four"] = int(sum(meets_all(r) for _, r in records if r.get("status") == "ok"))
         m["handles"] = {"cases_with_extra_handles": [seed for seed, r in ok if r.get("extra_handles", 0) > 0],
                         "cases_with_handles_removed": [seed for seed, r in ok if r.get("handles_removed", 0) > 0]}
         half = [(r.get("nascet_error_points_half_width"), r.get("min_diameter_error_mm_half_width"))

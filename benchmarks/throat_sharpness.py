@@ -26,12 +26,13 @@ Writes ``results/throat_sharpness.json`` (about 6 minutes for 100 cases on one c
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
 
 from _common import git_state, write_results
-from bench_segmentation import CRITERIA, _meets, log
+from bench_segmentation import log, meets_all
 from carotid.centerline import compute_centerlines
 from carotid.centerline.axes import arclength
 from carotid.phantom import make_phantom
@@ -70,11 +71,6 @@ def throat_bend(phantom) -> dict:
             "resolved": bend is None or bend >= h}
 
 
-def passes(record: dict) -> bool:
-    """Whether a scored run meets all four criteria of ``bench_segmentation``."""
-    return all(_meets(key, record.get(key)) for key in CRITERIA)
-
-
 def split(rows: list[dict]) -> dict:
     """Pass counts and failing seeds among resolved and among sub-voxel throats."""
     out = {}
@@ -87,6 +83,10 @@ def split(rows: list[dict]) -> dict:
 
 def main() -> None:
     """Measure every case of the two result files and write ``results/throat_sharpness.json``."""
+    missing = [name for name, _ in SOURCES if not (RESULTS / name).is_file()]
+    if missing:
+        print(f"throat_sharpness: results/{missing[0]} is missing: run bench_segmentation.py first", file=sys.stderr)
+        sys.exit(2)
     git = git_state()
     sets = {}
     for filename, method in SOURCES:
@@ -98,7 +98,7 @@ def main() -> None:
             row = {"seed": seed, "modality": phantom.info["modality"],
                    "area_reduction": case["truth"]["area_reduction"], **throat_bend(phantom),
                    "nascet_error_points": record.get("nascet_error_points"),
-                   "min_diameter_error_mm": record.get("min_diameter_error_mm"), "all_four": passes(record)}
+                   "min_diameter_error_mm": record.get("min_diameter_error_mm"), "all_four": meets_all(record)}
             rows.append(row)
             log(f"case {seed:2d}: rise {row['rise_mm']:.3f} mm within {row['voxel_mm']:.2f} mm, bend radius "
                 f"{row['bend_radius_mm'] or float('inf'):.2f} mm ({'resolved' if row['resolved'] else 'sub-voxel'}), "
