@@ -44,7 +44,7 @@ def _segment_parameters(args):
         "refine_radius_mm": args.refine_radius, "denoise_iterations": args.denoise,
         "seed_radius_mm": args.seed_radius, "max_iterations": args.max_iterations,
         "chamber_ratio": args.chamber_ratio, "handle_mm": args.handles,
-        "wall_trunk_mm": args.wall_trunk,
+        "wall_trunk_mm": args.wall_trunk, "slice_thickness_mm": args.slice_thickness,
     }
     if args.hu_window:
         fields["window"] = list(args.hu_window)
@@ -248,6 +248,10 @@ def _add_segment_options(p: argparse.ArgumentParser) -> None:
                    help="remove the lumen's handles (vessels bridged where the image does not resolve the gap "
                         "between them, tunnels through the mask) by cutting bridges or filling tunnels up to 2 MM "
                         "wide; 0 keeps them (default 1.5)")
+    p.add_argument("--slice-thickness", type=float, metavar="MM",
+                   help="reconstructed slice thickness, when the image file does not record it (DICOM and "
+                        "dcm2niix's JSON sidecar do): the blur model spreads each slice over it (default: the "
+                        "recorded thickness, else the slice spacing)")
     p.add_argument("--max-iterations", type=int, metavar="N", help="per stage (default 4000)")
     p.add_argument("--wall", action="store_true",
                    help="also segment the whole vessel (lumen, thrombus, wall): segmentation/wall_mask.nii.gz")

@@ -47,13 +47,14 @@ def test_segment_options_reach_the_parameters(phantom_dir, tmp_path, capsys):
     code, _, _ = run_and_capture(capsys, ["segment", phantom_dir / "image.nii.gz", "-o", case, "--alpha", "0.25",
                                           "--hu-window", "-50", "600", "--refine-radius", "0",
                                           "--wall-morphology", "1", "0.5", "--wall-trunk", "4",
-                                          "--max-iterations", "200", "--chamber-ratio", "3"])
+                                          "--max-iterations", "200", "--chamber-ratio", "3",
+                                          "--slice-thickness", "1.25"])
     assert code == 0
     params = json.loads((case / "segmentation" / "report.json").read_text())["parameters"]
     assert params["alpha"] == 0.25 and params["window"] == [-50, 600]
     assert params["refine_radius_mm"] == 0 and params["max_iterations"] == 200
     assert params["wall"] and params["wall_close_mm"] == 1 and params["wall_open_mm"] == 0.5
-    assert params["wall_trunk_mm"] == 4 and params["chamber_ratio"] == 3
+    assert params["wall_trunk_mm"] == 4 and params["chamber_ratio"] == 3 and params["slice_thickness_mm"] == 1.25
     assert (case / "segmentation" / "wall_mask.nii.gz").exists()
 
 
@@ -134,6 +135,8 @@ def bad_inputs(tmp_path, phantom_dir):
         ("bad parameter", ["segment", image, "--alpha", "2"]),
         ("bad chamber ratio", ["segment", image, "--chamber-ratio", "0.5"]),
         ("negative handle width", ["segment", image, "--handles", "-1"]),
+        ("negative slice thickness", ["segment", image, "--slice-thickness", "-1"]),
+        ("slice thickness not a number", ["segment", image, "--slice-thickness", "nan"]),
         ("truncated file", ["segment", cut]),
         ("initial region on another grid", ["segment", image, "--init-mask", shifted]),
     ]

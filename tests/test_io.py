@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from carotid.errors import CarotidError
+from carotid.errors import CarotidError, CarotidWarning
 from carotid.io import Volume, atomic_dir, atomic_path, read_image, write_image, write_json
 
 DIRECTION = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # rotated 90 degrees about z
@@ -44,8 +44,9 @@ def test_world_index_transform_matches_simpleitk(tmp_path):
     assert not vol.contains(np.array([[1e3, 0, 0]])).any()
 
 
-def write_dicom_series(folder, vol, slices=None):
-    """Write ``vol`` as a DICOM series, one file per slice index in ``slices`` (default: all, in order)."""
+def write_dicom_series(folder, vol, slices=None, thickness=None):
+    """Write ``vol`` as a DICOM series, one file per slice index in ``slices`` (default: all, in order), with
+    SliceThickness ``thickness`` (a string) if given."""
     array = np.round(vol.array).astype(np.int16)
     writer = sitk.ImageFileWriter()
     writer.KeepOriginalImageUIDOn()
@@ -61,6 +62,8 @@ def write_dicom_series(folder, vol, slices=None):
                            ("0020|0037", "\\".join(f"{c:.6f}" for c in DIRECTION.T[:2].ravel())),
                            ("0008|0018", f"{series}.{number + 1}"), ("0028|0030", "0.5\\0.45")]:
             sl.SetMetaData(tag, value)
+        if thickness is not None:
+            sl.SetMetaData("0018|0050", thickness)
         writer.SetFileName(str(folder / f"slice{number:03d}.dcm"))
         writer.Execute(sl)
     return array
@@ -85,6 +88,37 @@ def test_dicom_series_with_missing_or_repeated_slices_is_refused(tmp_path, slice
     write_dicom_series(tmp_path, vol, slices)
     with pytest.raises(CarotidError, match=what):
         read_image(tmp_path)
+
+
+def test_the_slice_thickness_a_scan_records_is_read(tmp_path):
+    """DICOM SliceThickness (0018,0050), in a series and in one file, and the ``SliceThickness`` of the JSON
+    sidecar dcm2niix writes beside a NIfTI file; formats that record none give None."""
+    vol = make_volume()
+    write_dicom_series(tmp_path, vol, thickness="1.25")
+    assert read_image(tmp_path).slice_thickness == pytest.approx(1.25)
+    single = sitk.GetImageFromArray(np.zeros((5, 6, 7), np.uint16))  # one multi-frame file
+    single.SetMetaData("0018|0050", "2.0 ")
+    sitk.WriteImage(single, str(tmp_path / "multi.dcm"))
+    assert read_image(tmp_path / "multi.dcm").slice_thickness == pytest.approx(2.0)
+    nifti = write_image(vol, tmp_path / "ct.nii.gz")
+    assert read_image(nifti).slice_thickness is None
+    (tmp_path / "ct.json").write_text('{"Modality": "CT", "SliceThickness": 1.5, "SpacingBetweenSlices": 0.625}')
+    assert read_image(nifti).slice_thickness == pytest.approx(1.5)
+    assert read_image(write_image(vol, tmp_path / "ct.nrrd")).slice_thickness is None
+    # The thickness goes with the grid into every volume made from it.
+    assert read_image(nifti).with_array(vol.array).slice_thickness == pytest.approx(1.5)
+
+
+@pytest.mark.parametrize("sidecar, value", [('{"SliceThickness": 0}', None), ('{"SliceThickness": "thin"}', None),
+                                            ("{not json", None), ('["SliceThickness", 1.0]', None)])
+def test_a_sidecar_without_a_usable_thickness_is_ignored_with_a_warning(tmp_path, sidecar, value):
+    nifti = write_image(make_volume(), tmp_path / "ct.nii")
+    (tmp_path / "ct.json").write_text(sidecar)
+    if sidecar.startswith("["):  # valid JSON without the field: nothing to say
+        assert read_image(nifti).slice_thickness is None
+        return
+    with pytest.warns(CarotidWarning, match="slice thickness|sidecar"):
+        assert read_image(nifti).slice_thickness is value
 
 
 def test_slice_steps_of_an_even_series_pass_and_a_gap_is_located():

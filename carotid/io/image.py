@@ -9,6 +9,7 @@ is ``origin + direction @ (spacing * (i, j, k))``.
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import re
@@ -42,12 +43,17 @@ class Volume:
         World position of voxel (0, 0, 0) in mm (LPS).
     direction : ndarray, shape (3, 3)
         Columns are the unit vectors of the i, j, k axes in the world frame.
+    slice_thickness : float or None
+        Reconstructed slice thickness along k in mm (DICOM SliceThickness), the width over which each slice
+        integrates the scan; it exceeds the slice spacing when slices overlap.  None when the file does not
+        record it.
     """
 
     array: np.ndarray
     spacing: tuple[float, float, float] = (1.0, 1.0, 1.0)
     origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
     direction: np.ndarray = None  # type: ignore[assignment]
+    slice_thickness: float | None = None
 
     def __post_init__(self):
         if self.direction is None:
@@ -112,7 +118,7 @@ def to_sitk(volume: Volume) -> sitk.Image:
     return image
 
 
-def _from_sitk(image: sitk.Image, source: str, dtype) -> Volume:
+def _from_sitk(image: sitk.Image, source: str, dtype, slice_thickness: float | None = None) -> Volume:
     if image.GetDimension() != 3 or min(image.GetSize()) < 2:
         raise CarotidError(f"{source}: image of size {image.GetSize()} is not a 3D volume")
     if image.GetNumberOfComponentsPerPixel() != 1:
@@ -121,7 +127,54 @@ def _from_sitk(image: sitk.Image, source: str, dtype) -> Volume:
     array = sitk.GetArrayFromImage(image)
     if dtype is not None:
         array = array.astype(dtype, copy=False)
-    return Volume(array, image.GetSpacing(), image.GetOrigin(), np.reshape(image.GetDirection(), (3, 3)))
+    return Volume(array, image.GetSpacing(), image.GetOrigin(), np.reshape(image.GetDirection(), (3, 3)),
+                  slice_thickness)
+
+
+SLICE_THICKNESS_TAG = "0018|0050"
+
+
+def _thickness(value, source: str) -> float | None:
+    """A recorded slice thickness as a positive number of mm; None (with a warning) when it is not one."""
+    try:
+        thickness = float(str(value).strip())
+    except ValueError:
+        thickness = math.nan
+    if math.isfinite(thickness) and thickness > 0:
+        return thickness
+    warnings.warn(f"{source}: slice thickness {value!r} is not a positive number of mm; the slice spacing is "
+                  "used instead", CarotidWarning, stacklevel=3)
+    return None
+
+
+def recorded_slice_thickness(path: Path, image: sitk.Image, reader: sitk.ImageSeriesReader | None) -> float | None:
+    """The slice thickness (mm) a scan records: DICOM SliceThickness (0018,0050), or for NIfTI the
+    ``SliceThickness`` of the BIDS sidecar ``<name>.json`` that dcm2niix writes beside it; None otherwise.
+
+    A value that is not a positive number, or a sidecar that is not a JSON object, is ignored with a
+    ``CarotidWarning``: the image itself is sound, and the slice spacing then stands in for the thickness.
+    """
+    if reader is not None:
+        if reader.HasMetaDataKey(0, SLICE_THICKNESS_TAG):
+            return _thickness(reader.GetMetaData(0, SLICE_THICKNESS_TAG), str(path))
+        return None
+    if image.HasMetaDataKey(SLICE_THICKNESS_TAG):
+        return _thickness(image.GetMetaData(SLICE_THICKNESS_TAG), str(path))
+    name = path.name.lower()
+    if not name.endswith((".nii", ".nii.gz")):
+        return None
+    sidecar = path.with_name(path.name[: -len(".nii.gz") if name.endswith(".gz") else -len(".nii")] + ".json")
+    if not sidecar.is_file():
+        return None
+    try:
+        fields = json.loads(sidecar.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        warnings.warn(f"{sidecar}: sidecar is not readable JSON ({error}); its slice thickness is ignored",
+                      CarotidWarning, stacklevel=2)
+        return None
+    if not isinstance(fields, dict) or "SliceThickness" not in fields:
+        return None
+    return _thickness(fields["SliceThickness"], str(sidecar))
 
 
 # Relative deviation from the median slice step above which a DICOM series counts as uneven.
@@ -160,7 +213,7 @@ def check_slice_steps(positions: np.ndarray, source: str) -> None:
                        f"{len(positions)} slices)")
 
 
-def _read_dicom_series(folder: Path) -> sitk.Image:
+def _read_dicom_series(folder: Path) -> tuple[sitk.Image, sitk.ImageSeriesReader]:
     reader = sitk.ImageSeriesReader()
     series = reader.GetGDCMSeriesIDs(str(folder))
     if not series:
@@ -172,7 +225,7 @@ def _read_dicom_series(folder: Path) -> sitk.Image:
     positions = _slice_positions(reader, len(files))
     if positions is not None:
         check_slice_steps(positions, str(folder))
-    return image
+    return image, reader
 
 
 @contextmanager
@@ -263,6 +316,7 @@ def read_image(path: str | os.PathLike, dtype=np.float32) -> Volume:
     Returns
     -------
     Volume
+        With the slice thickness the scan records (``recorded_slice_thickness``), if any.
 
     Raises
     ------
@@ -283,7 +337,7 @@ def read_image(path: str | os.PathLike, dtype=np.float32) -> Volume:
     failure = None
     with itk_messages() as messages:
         try:
-            image = _read_dicom_series(path) if path.is_dir() else sitk.ReadImage(str(path))
+            image, reader = _read_dicom_series(path) if path.is_dir() else (sitk.ReadImage(str(path)), None)
         except RuntimeError as exc:
             failure = str(exc).strip().splitlines()[-1] if str(exc).strip() else ""
     if failure is not None:
@@ -298,7 +352,7 @@ def read_image(path: str | os.PathLike, dtype=np.float32) -> Volume:
                                "(an interrupted copy or download?)")
         if nans:
             raise CarotidError(f"{path}: image has {nans} NaN voxels")
-    return _from_sitk(image, str(path), dtype)
+    return _from_sitk(image, str(path), dtype, recorded_slice_thickness(path, image, reader))
 
 
 def write_image(volume: Volume, path: str | os.PathLike, compress: bool = True) -> Path:

@@ -44,7 +44,8 @@ from carotid.segment.intensity import local_level, region_box
 
 def refine(image: np.ndarray, phi: np.ndarray, spacing_kji, lumen: float, background: float, blur_mm: float,
            exclude: np.ndarray | None = None, iterations: int = 20, gain: float = 2.0, smooth_mm: float = 1.0,
-           normal: bool = True, level_mm: float = 0.0, slices: bool = True) -> np.ndarray:
+           normal: bool = True, level_mm: float = 0.0, slices: bool = True,
+           thickness_mm: float | None = None) -> np.ndarray:
     """Level set moved to the wall that best explains the image under a Gaussian blur.
 
     Parameters
@@ -78,6 +79,8 @@ def refine(image: np.ndarray, phi: np.ndarray, spacing_kji, lumen: float, backgr
     slices : bool
         Blur each axis by ``axis_blur`` (the thicker voxels' boxcar added along their axis); False: by
         ``blur_mm`` along every axis.
+    thickness_mm : float, optional
+        Slice thickness along k (mm) for ``axis_blur``; None: the slice spacing.
 
     Returns
     -------
@@ -100,7 +103,7 @@ def refine(image: np.ndarray, phi: np.ndarray, spacing_kji, lumen: float, backgr
     tissue = local_background(crop, phi0, spacing, sigma_mm, excluded, background)
     if normal:
         tissue = normal_background(crop, phi0, spacing, sigma_mm, excluded, tissue)
-    sigma_axes = axis_blur(sigma_mm, spacing) if slices else np.full(3, sigma_mm)
+    sigma_axes = axis_blur(sigma_mm, spacing, thickness_mm) if slices else np.full(3, sigma_mm)
     sigma = sigma_axes / spacing
     smoothing = np.hypot(sigma_axes, smooth_mm) / spacing
     ramp = np.float32(spacing.min())
@@ -122,7 +125,7 @@ def refine(image: np.ndarray, phi: np.ndarray, spacing_kji, lumen: float, backgr
     return result
 
 
-def reach_mm(blur_mm: float, spacing_kji) -> float:
+def reach_mm(blur_mm: float, spacing_kji, thickness_mm: float | None = None) -> float:
     """Distance (mm) from the wall beyond which ``refine`` does not read its level set's values.
 
     The misfit lives in a band ``2 blur_mm + h`` wide; the model's Gaussians (truncated at four standard
@@ -134,24 +137,30 @@ def reach_mm(blur_mm: float, spacing_kji) -> float:
     ----------
     blur_mm : float
     spacing_kji : array_like, shape (3,)
+    thickness_mm : float, optional
+        Slice thickness (``axis_blur``).
 
     Returns
     -------
     float
     """
     h = float(np.max(spacing_kji))
-    return 2.0 * blur_mm + h + 4.0 * np.sqrt(3.0) * float(axis_blur(blur_mm, spacing_kji).max()) + 2.0 * h
+    sigma = float(axis_blur(blur_mm, spacing_kji, thickness_mm).max())
+    return 2.0 * blur_mm + h + 4.0 * np.sqrt(3.0) * sigma + 2.0 * h
 
 
-def axis_blur(blur_mm: float, spacing_kji) -> np.ndarray:
-    """Standard deviation (mm) of the blur along each axis: ``sqrt(blur_mm^2 + (h_a^2 - h_min^2) / 12)``.
+def axis_blur(blur_mm: float, spacing_kji, thickness_mm: float | None = None) -> np.ndarray:
+    """Standard deviation (mm) of the blur along each axis: ``sqrt(blur_mm^2 + (w_a^2 - h_min^2) / 12)``,
+    at least the boxcar's own ``w_a / sqrt(12)``.
 
-    A voxel integrates the image over its own extent, a boxcar of variance ``h^2 / 12`` along each axis.  The
-    blur measured on a vessel's edges (``intensity.edge_blur``), whose normals run across the vessel and so
-    mostly within the slices, holds the boxcar of the finest voxel size; a thicker slice (0.5 x 0.5 x 1.0 mm,
-    an MR angiogram's 1.5 mm slices) adds the rest of its own along its axis.  A short, tight stenosis is
-    concave along the vessel, and a model blurred too little along it matches the brighter throat the slices
-    leave with a wider wall.
+    A voxel integrates the image over its own extent ``w_a``, a boxcar of variance ``w_a^2 / 12`` along each
+    axis: the voxel size in plane, and along the slice axis k the slice thickness when the scan records one
+    (overlapping reconstructions, 1 mm slices every 0.5 mm, are the rule in CT angiography), else the slice
+    spacing.  The blur measured on a vessel's edges (``intensity.edge_blur``), whose normals run across the
+    vessel and so mostly within the slices, holds the boxcar of the finest voxel size ``h_min``; a thicker
+    slice (0.5 x 0.5 x 1.0 mm, an MR angiogram's 1.5 mm slices) adds the rest of its own along its axis.  A
+    short, tight stenosis is concave along the vessel, and a model blurred too little along it matches the
+    brighter throat the slices leave with a wider wall.
 
     Parameters
     ----------
@@ -159,13 +168,18 @@ def axis_blur(blur_mm: float, spacing_kji) -> np.ndarray:
         Blur measured within the slices, mm.
     spacing_kji : array_like, shape (3,)
         Voxel size, mm.
+    thickness_mm : float, optional
+        Slice thickness along k, mm; None: the slice spacing.
 
     Returns
     -------
     ndarray, shape (3,)
     """
     h = np.asarray(spacing_kji, float)
-    return np.sqrt(blur_mm ** 2 + (h ** 2 - h.min() ** 2) / 12.0)
+    width = h.copy()
+    if thickness_mm is not None:
+        width[0] = thickness_mm
+    return np.sqrt(np.maximum(blur_mm ** 2 + (width ** 2 - h.min() ** 2) / 12.0, width ** 2 / 12.0))
 
 
 def lumen_level(image: np.ndarray, tissue: np.ndarray, phi: np.ndarray, core: np.ndarray, spacing,

@@ -21,7 +21,7 @@ from carotid.io import Volume, atomic_dir, write_image, write_json
 from carotid.segment.barrier import (chamber_cores, chamber_neck, competing_region, half_level_barrier,
                                      half_maximum_speed, point_mask, under_enhanced)
 from carotid.segment.calcium import hyperdense_edge
-from carotid.segment.deblur import reach_mm, refine
+from carotid.segment.deblur import axis_blur, reach_mm, refine
 from carotid.segment.handles import remove_handles
 from carotid.segment.init import automatic_region, check_points, mask_levelset, seed_levelset, seed_sample
 from carotid.segment.intensity import (IntensityModel, estimate_from_sample, local_level, local_radius,
@@ -101,6 +101,10 @@ class SegmentParameters:
         Blur that refinement's model along each axis by the measured blur plus the part of the voxel's
         boxcar beyond the finest axis's (``deblur.axis_blur``): thick slices blur a throat along the vessel
         more than within the slices.  False: the measured blur along every axis.
+    slice_thickness_mm : float
+        Slice thickness (mm) whose boxcar that model adds along the slice axis; 0: the thickness the scan
+        records (``Volume.slice_thickness``: DICOM SliceThickness, a dcm2niix sidecar), else the slice
+        spacing.  Overlapping slices (1 mm every 0.5 mm) blur along the vessel more than their spacing says.
     handle_mm : float
         Largest half-width (mm) of a bridge cut or a tunnel filled to remove the lumen's handles, which a vessel
         tree does not have (``handles`` module); 0 keeps them.
@@ -177,6 +181,7 @@ class SegmentParameters:
     deblur_gain: float = 2.0
     deblur_smooth_mm: float = 1.0
     deblur_slices: bool = True
+    slice_thickness_mm: float = 0.0
     handle_mm: float = 1.5
     denoise_iterations: int = 0
     kernel_radius_mm: float = 10.0
@@ -240,6 +245,8 @@ class SegmentParameters:
             (self.handle_mm >= 0, "handle_mm must not be negative"),
             (self.deblur_iterations >= 0 and self.deblur_gain > 0 and self.deblur_smooth_mm >= 0,
              "deblur_iterations and deblur_smooth_mm must not be negative, deblur_gain must be positive"),
+            (np.isfinite(self.slice_thickness_mm) and self.slice_thickness_mm >= 0,
+             "slice_thickness_mm must be a number >= 0 (0: the scan's own)"),
             (self.wall_hu_low < self.wall_contrast_hu and (
                 self.wall_hu_high == 0 or self.wall_hu_low < self.wall_hu_high < self.wall_contrast_hu),
              "wall_hu_low < wall_hu_high (0: measured) < wall_contrast_hu required"),
@@ -338,18 +345,29 @@ def barrier_of(image01: np.ndarray, window, model: IntensityModel, spacing_kji, 
     return out
 
 
+def slice_thickness(volume: Volume, params: SegmentParameters) -> tuple[float | None, str]:
+    """Slice thickness (mm) the blur model adds along k, and where it comes from: the parameter, the scan's
+    record (``Volume.slice_thickness``) or, as None, the slice spacing."""
+    if params.slice_thickness_mm > 0:
+        return float(params.slice_thickness_mm), "parameter"
+    if volume.slice_thickness is not None:
+        return float(volume.slice_thickness), "image"
+    return None, "slice spacing"
+
+
 def deblur(image: np.ndarray, phi: np.ndarray, spacing_kji, model: IntensityModel, params: SegmentParameters,
-           stopped: np.ndarray | None, dense: np.ndarray | None) -> np.ndarray:
+           stopped: np.ndarray | None, dense: np.ndarray | None, thickness_mm: float | None = None) -> np.ndarray:
     """The converged front moved to the wall of the blurred lumen model that best explains ``image``
-    (``deblur.refine``), with the lumen level followed along the vessel and neighbours and calcium left out."""
+    (``deblur.refine``), with the lumen level followed along the vessel and neighbours and calcium left out;
+    ``thickness_mm`` is the slice thickness (None: the slice spacing)."""
     # The evolution's level set is clipped to its band; the refinement reads it out to reach_mm.
-    phi = signed_distance(phi, spacing_kji, min(params.far_mm, reach_mm(model.blur, spacing_kji)))
+    phi = signed_distance(phi, spacing_kji, min(params.far_mm, reach_mm(model.blur, spacing_kji, thickness_mm)))
     exclude = stopped
     if dense is not None:
         exclude = dense if exclude is None else exclude | dense
     return refine(image, phi, spacing_kji, model.lumen, model.background, model.blur, exclude,
                   iterations=params.deblur_iterations, gain=params.deblur_gain, smooth_mm=params.deblur_smooth_mm,
-                  level_mm=params.level_mm, slices=params.deblur_slices)
+                  level_mm=params.level_mm, slices=params.deblur_slices, thickness_mm=thickness_mm)
 
 
 def chambers(phi: np.ndarray, image01: np.ndarray, window, model: IntensityModel, spacing_kji,
@@ -573,11 +591,16 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
             iterations[-1] += more
         converged.append(result.converged)
     del ghat, g, image01
+    thickness, thickness_source = slice_thickness(volume, params)
     if params.deblur and model.blur:
-        phi = deblur(image, phi, spacing, model, params, stopped, dense)
+        phi = deblur(image, phi, spacing, model, params, stopped, dense, thickness)
     timings["evolution_s"] = time.perf_counter() - t1
     intensity = {**model.as_dict(), "window": [float(w) for w in lumen_window(model, params)], "hyperdense": hyperdense,
-                 "window_source": "override" if params.window else "estimated"}
+                 "window_source": "override" if params.window else "estimated",
+                 "slice_thickness_mm": thickness, "slice_thickness_source": thickness_source,
+                 "model_blur_kji_mm": (None if not (params.deblur and model.blur) else
+                                       (axis_blur(model.blur, spacing, thickness) if params.deblur_slices
+                                        else np.full(3, model.blur)).tolist())}
     if level is not None:
         inside = phi < 0
         intensity["followed_lumen_level_percentiles_5_50_95"] = (
@@ -628,7 +651,7 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
         "wall": wall_report,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "image": {"shape_kji": list(volume.array.shape), "spacing_mm": list(volume.spacing),
-                  "origin_mm": list(volume.origin)},
+                  "origin_mm": list(volume.origin), "slice_thickness_mm": volume.slice_thickness},
     }
     return Segmentation(volume.with_array(phi), volume.with_array(mask), report,
                         None if wall is None else volume.with_array(wall))
