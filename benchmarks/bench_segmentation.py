@@ -71,6 +71,10 @@ cases, scored as above, into ``results/segmentation_variants.json``: the sweep
 behind a default.  ``--first-seed 30`` runs family cases the defaults were never
 developed on (seeds 30 and up): the check that a default holds beyond its own cases.
 
+Two diagnostics go with that mode (``--name`` sets the results file): ``--noise-scale F`` multiplies
+every case's noise by F (0.02 leaves the model's own bias), and ``--recorded-thickness`` adds a run of the
+defaults on scans that record the slice thickness of their through-plane blur (``recorded_thickness``).
+
 ``--quick``: 3 family cases, a 128^3 large case timed once, no CTA, two
 analytic tubes (about 4 minutes on 2 cores; the full run about 50).
 """
@@ -81,7 +85,7 @@ import argparse
 import os
 import time
 import traceback
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -716,23 +720,55 @@ def count(text: str) -> int:
     return value
 
 
-def run_variants(variants: dict[str, dict], seeds) -> dict:
+def recorded_thickness(phantom) -> float:
+    """The slice thickness (mm) a scan of ``phantom`` would record for its through-plane blur: the ``T`` for
+    which ``deblur.axis_blur`` of the in-plane blur is the phantom's blur along z (the family blurs z 1.25
+    times as much as the plane), ``T = sqrt(12 (sigma_z^2 - sigma^2) + h_min^2)``.  An oracle: the scan's
+    own record of how it was reconstructed, which a NIfTI file without a sidecar does not carry."""
+    blur = phantom.info["blur_sigma_mm"]
+    h_min = float(np.min(phantom.image.spacing_kji))
+    return float(np.sqrt(max(12.0 * (blur["z"] ** 2 - blur["in_plane"] ** 2), 0.0) + h_min ** 2))
+
+
+def scale(text: str) -> float:
+    """A finite number >= 0 (the ``type`` of ``--noise-scale``); anything else: one line, exit 2."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not (np.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number >= 0")
+    return value
+
+
+def run_variants(variants: dict[str, dict], seeds, noise_scale: float = 1.0, thickness: bool = False) -> dict:
     """carotid (one seed per branch) with the defaults and with each variant on the same family cases, scored
-    like the main run: the sweep behind a default, reproducible from the repository."""
+    like the main run: the sweep behind a default, reproducible from the repository.
+
+    ``noise_scale`` multiplies each case's noise (0.02: the model's own bias, without the noise);
+    ``thickness`` adds a run ``recorded_thickness``, the defaults on the scan recording the slice thickness
+    of its through-plane blur (``recorded_thickness``)."""
     cases = []
+    runs = {**variants, **({"recorded_thickness": {}} if thickness else {})}
     for seed in seeds:
-        phantom = make_phantom(**sample_family(seed))
-        volume = phantom.image
+        kwargs = sample_family(seed)
+        kwargs["noise"] = kwargs["noise"] * noise_scale
+        phantom = make_phantom(**kwargs)
         s = phantom.info["seeds_mm"]
         seeds = np.array([s["CCA"], s["ICA"], s["ECA"]], float)
         tg = grade(phantom.sdf.array, phantom.mask.array > 0, phantom.image)
-        case = {"seed": seed, "truth": phantom.info["stenosis"], "truth_graded": tg, "methods": {}}
-        for name, overrides in variants.items():
+        case = {"seed": seed, "noise": kwargs["noise"], "truth": phantom.info["stenosis"], "truth_graded": tg,
+                "methods": {}}
+        for name, overrides in runs.items():
+            volume = phantom.image
+            if name == "recorded_thickness":
+                case["recorded_thickness_mm"] = recorded_thickness(phantom)
+                volume = replace(volume, slice_thickness=case["recorded_thickness_mm"])
             record, run = guarded(name, seed, run_carotid, volume, seeds, SegmentParameters(**overrides))
             case["methods"][name] = score(run, phantom, tg) if run is not None else record
             log(f"case {seed:2d} {name}: {brief(case['methods'][name])}")
         cases.append(case)
-    return {"variants": variants, "cases": cases, "summary": summarise(cases, tuple(variants))}
+    return {"variants": runs, "noise_scale": noise_scale, "cases": cases, "summary": summarise(cases, tuple(runs))}
 
 
 def main() -> None:
@@ -751,6 +787,13 @@ def main() -> None:
                         help="also run carotid with these SegmentParameters overrides (repeatable); only carotid "
                              "with the defaults and each variant runs, on the family cases, and the results go to "
                              "results/segmentation_variants.json")
+    parser.add_argument("--recorded-thickness", action="store_true",
+                        help="with --variant mode: also run the defaults on scans that record the slice thickness "
+                             "of their through-plane blur (an oracle; bench_segmentation.recorded_thickness)")
+    parser.add_argument("--noise-scale", type=scale, default=1.0, metavar="F",
+                        help="with --variant mode: multiply each case's noise by F (0.02: nearly noise-free)")
+    parser.add_argument("--name", default="segmentation_variants",
+                        help="results file of the --variant mode (default segmentation_variants)")
     args = parser.parse_args()
     variants = {",".join(f"{k}={v}" for k, v in overrides.items()): overrides for overrides in args.variant}
     n_cases = args.cases if args.cases is not None else (3 if args.quick else 30)
@@ -763,13 +806,14 @@ def main() -> None:
     warm = make_phantom(0.7, 20.0, 0, extent=(30.0, 30.0, 45.0))
     _, warm_seconds = timed(segment, warm.image, seeds_xyz=[warm.info["seeds_mm"]["CCA"]])
     log(f"warm-up segment (numba compilation) {warm_seconds:.1f} s")
-    if variants:
+    if variants or args.recorded_thickness or args.noise_scale != 1.0:
         figures = {"git": git, "load_average_at_start": os.getloadavg(), "family_seeds": str(seeds),
-                   **run_variants({"defaults": {}, **variants}, seeds), "load_average_at_end": os.getloadavg()}
+                   **run_variants({"defaults": {}, **variants}, seeds, args.noise_scale, args.recorded_thickness),
+                   "load_average_at_end": os.getloadavg()}
         for name, m in figures["summary"]["methods"].items():
             log(f"summary {name}: meeting {m['meeting']}; medians "
                 + ", ".join(f"{k} {v:.4g}" for k, v in m["median"].items()))
-        write_results("segmentation_variants", figures, args.quick)
+        write_results(args.name, figures, args.quick)
         return
     if args.large_only:
         load = os.getloadavg()
