@@ -103,7 +103,7 @@ def refine(image: np.ndarray, phi: np.ndarray, spacing_kji, lumen: float, backgr
     tissue = local_background(crop, phi0, spacing, sigma_mm, excluded, background)
     if normal:
         tissue = normal_background(crop, phi0, spacing, sigma_mm, excluded, tissue)
-    sigma_axes = axis_blur(sigma_mm, spacing, thickness_mm) if slices else np.full(3, sigma_mm)
+    sigma_axes = model_blur(sigma_mm, spacing, slices, thickness_mm)
     sigma = sigma_axes / spacing
     smoothing = np.hypot(sigma_axes, smooth_mm) / spacing
     ramp = np.float32(spacing.min())
@@ -147,6 +147,12 @@ def reach_mm(blur_mm: float, spacing_kji, thickness_mm: float | None = None) -> 
     h = float(np.max(spacing_kji))
     sigma = float(axis_blur(blur_mm, spacing_kji, thickness_mm).max())
     return 2.0 * blur_mm + h + 4.0 * np.sqrt(3.0) * sigma + 2.0 * h
+
+
+def model_blur(blur_mm: float, spacing_kji, slices: bool = True, thickness_mm: float | None = None) -> np.ndarray:
+    """Standard deviation (mm) per axis (k, j, i) of the blur in ``refine``'s model: ``axis_blur`` with
+    ``slices``, else ``blur_mm`` along every axis."""
+    return axis_blur(blur_mm, spacing_kji, thickness_mm) if slices else np.full(3, float(blur_mm))
 
 
 def axis_blur(blur_mm: float, spacing_kji, thickness_mm: float | None = None) -> np.ndarray:

@@ -21,7 +21,7 @@ from carotid.io import Volume, atomic_dir, write_image, write_json
 from carotid.segment.barrier import (chamber_cores, chamber_neck, competing_region, half_level_barrier,
                                      half_maximum_speed, point_mask, under_enhanced)
 from carotid.segment.calcium import hyperdense_edge
-from carotid.segment.deblur import axis_blur, reach_mm, refine
+from carotid.segment.deblur import model_blur, reach_mm, refine
 from carotid.segment.handles import remove_handles
 from carotid.segment.init import automatic_region, check_points, mask_levelset, seed_levelset, seed_sample
 from carotid.segment.intensity import (IntensityModel, estimate_from_sample, local_level, local_radius,
@@ -598,9 +598,8 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
     intensity = {**model.as_dict(), "window": [float(w) for w in lumen_window(model, params)], "hyperdense": hyperdense,
                  "window_source": "override" if params.window else "estimated",
                  "slice_thickness_mm": thickness, "slice_thickness_source": thickness_source,
-                 "model_blur_kji_mm": (None if not (params.deblur and model.blur) else
-                                       (axis_blur(model.blur, spacing, thickness) if params.deblur_slices
-                                        else np.full(3, model.blur)).tolist())}
+                 "model_blur_kji_mm": (model_blur(model.blur, spacing, params.deblur_slices, thickness).tolist()
+                                       if params.deblur and model.blur else None)}
     if level is not None:
         inside = phi < 0
         intensity["followed_lumen_level_percentiles_5_50_95"] = (
