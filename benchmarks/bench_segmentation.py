@@ -708,16 +708,22 @@ def parse_variant(text: str) -> dict:
     return out
 
 
-def count(text: str) -> int:
-    """A non-negative integer (the ``type`` of ``--cases`` and ``--first-seed``): anything else makes argparse
-    print one line and exit with status 2, instead of the family's traceback on a negative seed."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a non-negative integer")
-    return value
+NUMBER_NAMES = {int: "integer", float: "number"}
+
+
+def non_negative(kind):
+    """The ``type`` of an option taking a finite number >= 0 of ``kind`` (int for ``--cases`` and
+    ``--first-seed``, float for ``--noise-scale``): anything else makes argparse print one line and exit with
+    status 2, instead of the family's traceback on a negative seed."""
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            value = -1
+        if not (np.isfinite(value) and value >= 0):
+            raise argparse.ArgumentTypeError(f"{text!r} is not a non-negative {NUMBER_NAMES[kind]}")
+        return value
+    return parse
 
 
 def recorded_thickness(phantom) -> float:
@@ -728,17 +734,6 @@ def recorded_thickness(phantom) -> float:
     blur = phantom.info["blur_sigma_mm"]
     h_min = float(np.min(phantom.image.spacing_kji))
     return float(np.sqrt(max(12.0 * (blur["z"] ** 2 - blur["in_plane"] ** 2), 0.0) + h_min ** 2))
-
-
-def scale(text: str) -> float:
-    """A finite number >= 0 (the ``type`` of ``--noise-scale``); anything else: one line, exit 2."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = -1.0
-    if not (np.isfinite(value) and value >= 0):
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number >= 0")
-    return value
 
 
 def run_variants(variants: dict[str, dict], seeds, noise_scale: float = 1.0, thickness: bool = False) -> dict:
@@ -755,7 +750,7 @@ def run_variants(variants: dict[str, dict], seeds, noise_scale: float = 1.0, thi
         kwargs["noise"] = kwargs["noise"] * noise_scale
         phantom = make_phantom(**kwargs)
         s = phantom.info["seeds_mm"]
-        seeds = np.array([s["CCA"], s["ICA"], s["ECA"]], float)
+        points = np.array([s["CCA"], s["ICA"], s["ECA"]], float)
         tg = grade(phantom.sdf.array, phantom.mask.array > 0, phantom.image)
         case = {"seed": seed, "noise": kwargs["noise"], "truth": phantom.info["stenosis"], "truth_graded": tg,
                 "methods": {}}
@@ -764,7 +759,7 @@ def run_variants(variants: dict[str, dict], seeds, noise_scale: float = 1.0, thi
             if name == "recorded_thickness":
                 case["recorded_thickness_mm"] = recorded_thickness(phantom)
                 volume = replace(volume, slice_thickness=case["recorded_thickness_mm"])
-            record, run = guarded(name, seed, run_carotid, volume, seeds, SegmentParameters(**overrides))
+            record, run = guarded(name, seed, run_carotid, volume, points, SegmentParameters(**overrides))
             case["methods"][name] = score(run, phantom, tg) if run is not None else record
             log(f"case {seed:2d} {name}: {brief(case['methods'][name])}")
         cases.append(case)
@@ -776,8 +771,8 @@ def main() -> None:
     ``--variant``)."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="3 family cases, a 128^3 large case, no CTA")
-    parser.add_argument("--cases", type=count, default=None, help="number of family cases (default 30)")
-    parser.add_argument("--first-seed", type=count, default=0,
+    parser.add_argument("--cases", type=non_negative(int), default=None, help="number of family cases (default 30)")
+    parser.add_argument("--first-seed", type=non_negative(int), default=0,
                         help="family seed of the first case (default 0; the defaults were developed on 0-29)")
     parser.add_argument("--large-only", action="store_true",
                         help="only the 256^3 speed case, against GAC (results/segmentation_large.json): the speed "
@@ -790,7 +785,7 @@ def main() -> None:
     parser.add_argument("--recorded-thickness", action="store_true",
                         help="with --variant mode: also run the defaults on scans that record the slice thickness "
                              "of their through-plane blur (an oracle; bench_segmentation.recorded_thickness)")
-    parser.add_argument("--noise-scale", type=scale, default=1.0, metavar="F",
+    parser.add_argument("--noise-scale", type=non_negative(float), default=1.0, metavar="F",
                         help="with --variant mode: multiply each case's noise by F (0.02: nearly noise-free)")
     parser.add_argument("--name", default="segmentation_variants",
                         help="results file of the --variant mode (default segmentation_variants)")
