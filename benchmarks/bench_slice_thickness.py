@@ -16,7 +16,7 @@ on 0.35-1 mm), ``r0`` 0.9 or 1.3 mm; 0.4 mm pixels and a 0.5 mm Gaussian scanner
 grid along z and 0.2 mm in plane, then a boxcar of the slice thickness (0.5, 1.0, 1.5, 2.0 mm) along z,
 sampled every 0.5 mm, each pixel the mean of its 2 x 2 sub-pixels; lumen 350 HU on 40 HU, correlated
 noise of 15 HU, two noise draws per geometry.  Figure: the error (mm) of the throat's radius, the mean
-of the level set's zero on 36 rays in the slice through z = 0, against ``r0``.  No peer models the slice
+of the wall on 36 rays in the slice through z = 0 (``section_radii``), against ``r0``.  No peer models the slice
 profile; ``spacing`` is the baseline.
 
 Usage (from the repository root)::
@@ -33,6 +33,7 @@ import numpy as np
 from scipy import ndimage
 
 from _common import git_state, parse_args, timed, write_results
+from carotid.centerline.axes import section_radii
 from carotid.io import Volume
 from carotid.segment import segment
 
@@ -75,17 +76,10 @@ def throat_case(r0: float, length: float, thickness: float, draw: int) -> Volume
 
 
 def throat_radius(levelset: Volume, z0: float = 0.0) -> float:
-    """Mean radius (mm) of the level set's zero on 36 rays from the tube's axis (x = y = 0) at z = ``z0``."""
-    angles = np.radians(np.arange(0, 360, 10))
-    r = np.arange(0.0, RADIUS_MM + 1.0, 0.005)
-    points = np.stack([np.outer(np.cos(angles), r), np.outer(np.sin(angles), r),
-                       np.full((36, r.size), z0)], axis=-1)
-    values = ndimage.map_coordinates(levelset.array, levelset.world_to_index(points).reshape(-1, 3).T,
-                                     order=1).reshape(36, r.size)
-    inside = values < 0
-    first_out = np.argmax(~inside, axis=1)
-    a, b = values[np.arange(36), first_out - 1], values[np.arange(36), first_out]
-    return float(np.mean(r[first_out - 1] + (r[first_out] - r[first_out - 1]) * a / (a - b)))
+    """Mean radius (mm) of the lumen's wall on 36 rays from the tube's axis (x = y = 0) in the section at
+    z = ``z0`` (``centerline.axes.section_radii``, as the grading reads its sections)."""
+    axis = np.array([[0.0, 0.0, z0 - SPACING_MM], [0.0, 0.0, z0], [0.0, 0.0, z0 + SPACING_MM]])
+    return float(np.mean(section_radii(levelset, axis, np.full(3, RADIUS_MM), n_rays=36)[1]))
 
 
 def run_case(r0: float, length: float, thickness: float, draw: int) -> dict:
