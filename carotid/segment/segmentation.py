@@ -370,6 +370,39 @@ def deblur(image: np.ndarray, phi: np.ndarray, spacing_kji, model: IntensityMode
                   level_mm=params.level_mm, slices=params.deblur_slices, thickness_mm=thickness_mm)
 
 
+def lumen_levelset(phi: np.ndarray, stopped: np.ndarray | None, seeds_kji: np.ndarray | None, spacing_kji,
+                   params: SegmentParameters) -> tuple[np.ndarray, np.ndarray, list[dict]]:
+    """The lumen from the refined front: neighbours held out, the seeds' components kept, handles removed.
+
+    Parameters
+    ----------
+    phi : ndarray, float32, shape (nk, nj, ni)
+        Level set of the refined front (negative inside).
+    stopped : ndarray of bool, same shape, or None
+        Neighbours held out of the lumen.
+    seeds_kji : ndarray, shape (m, 3), or None
+        Seed voxels (fractional indices); None keeps the largest component.
+    spacing_kji : array_like, shape (3,)
+    params : SegmentParameters
+
+    Returns
+    -------
+    phi : ndarray, float32, same shape
+        Signed distance (mm) of the lumen, clamped to ``params.far_mm``.
+    mask : ndarray, uint8, same shape
+    handles_removed : list of dict
+        ``handles.remove_handles``' report.
+    """
+    inside = phi < 0
+    if stopped is not None:
+        inside &= ~stopped
+    inside = keep_components(inside, seeds_kji, spacing_kji)
+    inside, handles_removed = remove_handles(inside, spacing_kji, params.handle_mm)
+    phi = np.where(inside, np.minimum(phi, -1e-3), np.maximum(phi, 0)).astype(np.float32)
+    phi = signed_distance(phi, spacing_kji, params.far_mm)
+    return phi, (phi < 0).astype(np.uint8), handles_removed
+
+
 def chambers(phi: np.ndarray, image01: np.ndarray, window, model: IntensityModel, spacing_kji,
              params: SegmentParameters, seeds_kji: np.ndarray) -> tuple[np.ndarray | None, dict | None]:
     """The chambers the captured front ``phi`` has run into, up to the darkest surface between them and the
@@ -606,14 +639,7 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
             np.percentile(level[inside], [5, 50, 95]).tolist() if inside.any() else None)
 
     t2 = time.perf_counter()
-    inside = phi < 0
-    if stopped is not None:
-        inside &= ~stopped
-    inside = keep_components(inside, seeds_kji, spacing)
-    inside, handles_removed = remove_handles(inside, spacing, params.handle_mm)
-    phi = np.where(inside, np.minimum(phi, -1e-3), np.maximum(phi, 0)).astype(np.float32)
-    phi = signed_distance(phi, spacing, params.far_mm)
-    mask = (phi < 0).astype(np.uint8)
+    phi, mask, handles_removed = lumen_levelset(phi, stopped, seeds_kji, spacing, params)
     timings["distance_s"] = time.perf_counter() - t2
 
     wall, wall_report = None, None
