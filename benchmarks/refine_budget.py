@@ -4,11 +4,12 @@
 cases that miss the NASCET limit are tight throats graded too wide, and the
 mild, calcified ones that come closest to the minimal-diameter limit are
 graded too narrow.  The partial-volume refinement (``segment.deblur.refine``)
-decides where the throat's wall ends up, and it rests on four things that
+decides where the throat's wall ends up, and it rests on five things that
 can each be wrong: the lumen level ``A`` it follows along the vessel
 (``lumen_level``), the tissue level ``B`` around the wall
-(``normal_background``), the blur along the slice axis (``axis_blur``, from
-the slice spacing when the scan records no thickness), and its
+(``normal_background``), the blur within the slices (``intensity.edge_blur``),
+the blur along the slice axis (``axis_blur``, from the slice spacing when
+the scan records no thickness), and its
 regularisation (the wall's speed smoothed by ``deblur_smooth_mm`` and
 stopped after ``deblur_iterations`` steps).  This script runs ``segment``
 once per family case, keeps the front the evolution converged to, and
@@ -18,10 +19,12 @@ phantom's truth:
 * ``defaults``: ``segment``'s own result;
 * ``true_z_blur``: the through-plane blur given as the slice thickness that
   reproduces it (``bench_segmentation.recorded_thickness``);
+* ``true_blur``: that, and the phantom's in-plane blur in place of the
+  measured one;
 * ``true_levels``: ``A`` and ``B`` from the phantom, the lumen's level with
   its bolus fade (and the MR bias field), the tissue, fat and vein levels of
   the label map outside it;
-* ``true_model``: both;
+* ``true_model``: the true levels and both true blurs;
 * ``true_model_converged``: both, the speed unsmoothed and the descent run
   to convergence (100 steps of three times the step length);
 
@@ -131,10 +134,12 @@ def captured_segment(phantom, seeds_xyz) -> tuple[object, tuple]:
     return result, captured["args"]
 
 
-def rerun(args: tuple, seeds_kji, thickness=None, levels=None, start=None, **overrides) -> dict:
-    """The refinement rerun on captured arguments, then ``segment``'s lumen clean-up: a scorable run."""
+def rerun(args: tuple, seeds_kji, thickness=None, levels=None, start=None, blur=None, **overrides) -> dict:
+    """The refinement rerun on captured arguments (``thickness``, the ``levels`` pair, the ``start`` level set
+    and the in-plane ``blur`` replaced when given), then ``segment``'s lumen clean-up: a scorable run."""
     image, phi, spacing, model, params, stopped, dense, _ = args
     params = replace(params, **overrides)
+    model = model if blur is None else replace(model, blur=blur)
     phi = phi if start is None else start
     with oracle_levels(*levels) if levels is not None else contextlib.nullcontext():
         refined = segmentation.deblur(image, phi, spacing, model, params, stopped, dense, thickness)
@@ -153,21 +158,25 @@ def run_case(seed: int) -> dict:
         seeds_xyz = np.array([s["CCA"], s["ICA"], s["ECA"]], float)
         seeds_kji = phantom.image.world_to_index(seeds_xyz)
         truth = grade(phantom.sdf.array, phantom.mask.array > 0, phantom.image)
-        if not prefix:
-            case.update(modality=phantom.info["modality"], truth=phantom.info["stenosis"], truth_graded=truth,
-                        recorded_thickness_mm=recorded_thickness(phantom))
         result, args = captured_segment(phantom, seeds_xyz)
         thickness = recorded_thickness(phantom)
         levels = true_levels(phantom, seed)
+        blur = phantom.info["blur_sigma_mm"]["in_plane"]
+        if not prefix:
+            case.update(modality=phantom.info["modality"], truth=phantom.info["stenosis"], truth_graded=truth,
+                        recorded_thickness_mm=thickness,
+                        blur_mm={"measured": args[3].blur, "in_plane": blur, "z": phantom.info["blur_sigma_mm"]["z"]})
         runs = {"defaults": lambda: {"levelset": result.levelset.array, "mask": result.mask.array > 0}}
         if not prefix:
             runs["true_z_blur"] = lambda: rerun(args, seeds_kji, thickness)
+            runs["true_blur"] = lambda: rerun(args, seeds_kji, thickness, blur=blur)
             runs["true_levels"] = lambda: rerun(args, seeds_kji, levels=levels)
-        runs["true_model"] = lambda: rerun(args, seeds_kji, thickness, levels)
-        runs["true_model_converged"] = lambda: rerun(args, seeds_kji, thickness, levels, **CONVERGED)
+        runs["true_model"] = lambda: rerun(args, seeds_kji, thickness, levels, blur=blur)
+        runs["true_model_converged"] = lambda: rerun(args, seeds_kji, thickness, levels, blur=blur, **CONVERGED)
         if prefix:
             sdf = np.asarray(phantom.sdf.array, np.float32)
-            runs["true_model_from_truth"] = lambda: rerun(args, seeds_kji, thickness, levels, sdf, **CONVERGED)
+            runs["true_model_from_truth"] = lambda: rerun(args, seeds_kji, thickness, levels, sdf, blur,
+                                                          **CONVERGED)
         for name, run in runs.items():
             scored = score(run(), phantom, truth)
             case["variants"][prefix + name] = {k: scored.get(k) for k in (
