@@ -114,3 +114,34 @@ def test_kept_components_follow_the_seeds():
     assert np.array_equal(keep_components(inside, np.array([[10.0, 10.0, 13.0]]), spacing), small)
     assert np.array_equal(keep_components(inside, np.array([[10.0, 10.0, 20.0]]), spacing, reach_mm=1.0),
                           inside & ~small)
+
+
+def test_lumen_levelset_holds_out_neighbours_keeps_the_seeded_tree_and_cuts_a_bridge():
+    """segment's clean-up of a refined front that overlaps a held-out vein, holds a blob apart from the
+    artery and a bridge between two limbs of a loop: the vein and the blob go, the bridge is cut, and the
+    level set is the signed distance of the looped artery that is left."""
+    from scipy import ndimage
+
+    from carotid.segment.segmentation import lumen_levelset
+    from test_handles import SPACING, grid, looped_vessel, rod
+
+    points = grid()
+    loop = looped_vessel(points)
+    bridge = rod(points, (-4, 0, -3.5), (-4, 0, 3.5), 0.5)
+    vein = rod(points, (-12, 0, -7.0), (0, 0, -7.0), 2.0) & ~loop  # touching the left limb's outer wall
+    blob = rod(points, (-12, 0, 9.0), (-10, 0, 9.0), 1.0)
+    front = loop | bridge | vein | blob
+    phi = (ndimage.distance_transform_edt(~front, sampling=SPACING)
+           - ndimage.distance_transform_edt(front, sampling=SPACING)).astype(np.float32)
+    seed = np.argwhere(rod(points, (7.9, 0, -3.5), (8.1, 0, -3.5), 0.3)).mean(axis=0)[None]
+    out, mask, changes = lumen_levelset(phi, vein, seed, SPACING, SegmentParameters())
+    assert np.array_equal(mask > 0, out < 0)
+    assert topology(mask > 0) == {"components": 1, "handles": 0}
+    assert [c["kind"] for c in changes] == ["cut"]
+    assert not (mask > 0)[vein | blob].any()
+    assert (mask > 0)[loop].mean() > 0.995
+    # A signed distance: about -2 mm near a limb's axis (radius 2 mm; within a voxel), and at the dropped blob's
+    # centre the 3.5 mm to the limb's wall (x = 5.5 mm), clamped to far_mm.
+    assert -2.2 < out[tuple(np.round(seed[0]).astype(int))] < -1.4
+    centre = np.argwhere(rod(points, (-11.1, 0, 9.0), (-10.9, 0, 9.0), 0.3)).mean(axis=0).round().astype(int)
+    assert abs(out[tuple(centre)] - min(3.5, SegmentParameters().far_mm)) < 0.4
