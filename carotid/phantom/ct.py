@@ -454,6 +454,14 @@ def _occupancy(sdf: np.ndarray, width: float) -> np.ndarray:
     return np.clip(0.5 - sdf / width, 0.0, 1.0).astype(np.float32)
 
 
+def bolus_level(z_mm: np.ndarray, tissue: float, proximal: float, fade: float, extent_z: float) -> np.ndarray:
+    """The family's lumen level at heights ``z_mm``: ``proximal`` up to z = 10 mm, falling linearly by the
+    fraction ``fade`` of the contrast over the image's height ``extent_z`` less 10 mm at either end (float32,
+    ``z_mm``'s shape)."""
+    ramp = np.clip((np.asarray(z_mm) - 10.0) / (extent_z - 20.0), 0.0, 1.0).astype(np.float32)
+    return (tissue + (proximal - tissue) * (1.0 - fade * ramp)).astype(np.float32)
+
+
 def _unit_noise(rng: np.random.Generator, shape: tuple[int, int, int]) -> np.ndarray:
     """Correlated Gaussian noise of unit standard deviation (float32)."""
     white = ndimage.gaussian_filter(rng.standard_normal(shape).astype(np.float32), 0.6)
@@ -727,9 +735,8 @@ def make_phantom(stenosis: float | None = None, noise: float | None = None, seed
         if prox <= tissue:
             raise CarotidError(f"arterial level {prox:g} must be above the tissue level {tissue:g}")
         venous = tissue + fraction * (prox - tissue)
-        ramp = np.clip((xyz[:, 2] - 10.0) / (extent[2] - 20.0), 0.0, 1.0).astype(np.float32)
-        arterial = (tissue + (prox - tissue) * (1.0 - fade * ramp)).astype(np.float32)
-        del xyz, ramp
+        arterial = bolus_level(xyz[:, 2], tissue, prox, fade, extent[2])
+        del xyz
         spacing_kji = grid.spacing_kji
         texture = ndimage.gaussian_filter(rng.standard_normal(shape).astype(np.float32), 2.7 / spacing_kji)
         texture /= max(float(texture.std()), 1e-6)
