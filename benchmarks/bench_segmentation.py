@@ -588,7 +588,8 @@ def _worse(key: str):
     return lambda v: v
 
 
-def _meets(key: str, value) -> bool:
+def meets(key: str, value) -> bool:
+    """Whether ``value`` of figure ``key`` meets its limit in ``CRITERIA`` (None never does)."""
     if value is None:
         return False
     op, limit = CRITERIA[key]
@@ -597,7 +598,7 @@ def _meets(key: str, value) -> bool:
 
 def meets_all(record: dict) -> bool:
     """Whether a scored run meets every one of ``CRITERIA`` (the "all four" count)."""
-    return all(_meets(key, record.get(key)) for key in CRITERIA)
+    return all(meets(key, record.get(key)) for key in CRITERIA)
 
 
 def summarise(cases: list[dict], methods=METHODS) -> dict:
@@ -625,7 +626,7 @@ def summarise(cases: list[dict], methods=METHODS) -> dict:
             if key in ("nascet_error_points", "min_diameter_error_mm"):
                 m["mean_abs"][key] = float(np.mean(np.abs(v)))
         for key in CRITERIA:
-            m["meeting"][key] = int(sum(_meets(key, r.get(key)) for _, r in records if r.get("status") == "ok"))
+            m["meeting"][key] = int(sum(meets(key, r.get(key)) for _, r in records if r.get("status") == "ok"))
         m["meeting"]["all_four"] = int(sum(meets_all(r) for _, r in records if r.get("status") == "ok"))
         m["handles"] = {"cases_with_extra_handles": [seed for seed, r in ok if r.get("extra_handles", 0) > 0],
                         "cases_with_handles_removed": [seed for seed, r in ok if r.get("handles_removed", 0) > 0]}
