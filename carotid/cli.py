@@ -64,7 +64,7 @@ def cmd_phantom(args) -> int:
         "spacing": args.spacing, "extent": args.extent, "vein_gap_mm": args.vein_gap,
         "venous_fraction": args.venous_fraction, "calcium_hu": args.calcium_hu, "blur_sigma_mm": args.blur_sigma,
         "arterial_hu": args.arterial_hu, "bolus_fade": args.bolus_fade, "ica_shape": args.ica_shape,
-        "modality": args.modality, "bias": args.bias,
+        "modality": args.modality, "bias": args.bias, "noise_seed": args.noise_seed,
     }
     explicit = {k: v for k, v in explicit.items() if v is not None}
     if "nascet" in explicit:
@@ -284,6 +284,8 @@ def build_parser() -> argparse.ArgumentParser:
                             "reduction; at most about 0.7 (the area reduction stays < 0.95)")
     p.add_argument("--noise", type=float, help="noise standard deviation, HU in CT (default 20), MR units in MR")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--noise-seed", type=int, metavar="N",
+                   help="draw the image noise alone from N: the same anatomy rescanned (default: from --seed)")
     p.add_argument("--spacing", nargs=3, type=float, metavar=("X", "Y", "Z"),
                    help="voxel size in mm (default 0.45 0.45 0.625)")
     p.add_argument("--extent", nargs=3, type=float, metavar=("X", "Y", "Z"),

@@ -81,6 +81,37 @@ def test_noise_and_seed_are_honoured():
     assert 25 < np.std(c.image.array[tissue] - a.image.array[tissue]) < 35
 
 
+@pytest.mark.parametrize("kwargs", [dict(stenosis=0.6, noise=30.0, seed=5),
+                                    dict(modality="mr", noise=150.0, seed=5, spacing=(0.6, 0.6, 0.8),
+                                         extent=(30, 30, 48))])
+def test_noise_seed_rescans_the_same_anatomy(kwargs):
+    """A noise seed redraws the noise alone: anatomy, levels, texture and bias field stay; the noise is as
+    strong as the first draw's and independent of it, in MR both Rician components (the second one is what
+    the dark cortical bone shows)."""
+    kwargs = {"extent": (30, 30, 40), **kwargs}
+    first, again, other = (make_phantom(**kwargs, noise_seed=n) for n in (None, None, 1))
+    clean = make_phantom(**dict(kwargs, noise=1e-6))
+    assert np.array_equal(first.image.array, again.image.array)
+    for name in ("mask", "sdf", "labels"):
+        assert np.array_equal(getattr(first, name).array, getattr(other, name).array)
+    tissue = (first.labels.array == 0) & ndimage.binary_erosion(first.labels.array == 0, iterations=8)
+    lumen = first.sdf.array < -1.5
+    noise = kwargs["noise"]
+    for region in (tissue, lumen):
+        a = first.image.array[region] - clean.image.array[region]
+        b = other.image.array[region] - clean.image.array[region]
+        assert 0.85 * noise < np.std(b) < 1.15 * noise
+        assert abs(np.corrcoef(a, b)[0, 1]) < 0.1
+        assert abs(np.mean(b) - np.mean(a)) < 0.1 * noise
+    if kwargs.get("modality") == "mr":
+        bone = first.labels.array == LABELS["bone"]
+        a, b = (p.image.array[bone] - clean.image.array[bone] for p in (first, other))
+        assert abs(np.corrcoef(a, b)[0, 1]) < 0.2
+    assert other.info["parameters"]["noise_seed"] == 1 and "noise_seed" not in first.info["parameters"]
+    assert np.array_equal(make_phantom(**json.loads(json.dumps(other.info["parameters"]))).image.array,
+                          other.image.array)
+
+
 def test_bad_parameters_are_refused():
     with pytest.raises(CarotidError):
         make_phantom(stenosis=0.99)
@@ -92,7 +123,7 @@ def test_bad_parameters_are_refused():
            dict(blur_sigma_mm=-1), dict(bolus_fade=1.0), dict(ica_shape="spiral"), dict(modality="pet"),
            dict(modality="mr", calcium_hu=800), dict(bias=0.2), dict(modality="mr", bias=1.0),
            dict(plaque_size=-1), dict(plaque_offset_mm=9), dict(arterial_hu=20), dict(calcium_hu=-5), dict(seed=-1),
-           dict(ica_shape="loop", extent=(44, 44, 50))]
+           dict(noise_seed=-1), dict(noise_seed=1.5), dict(ica_shape="loop", extent=(44, 44, 50))]
     for kwargs in bad:
         with pytest.raises(CarotidError):
             make_phantom(**kwargs)
@@ -372,7 +403,8 @@ def test_cli_phantom(tmp_path, capsys):
     assert main(["phantom", str(tmp_path / "n"), "--nascet", "0.5", "--extent", "24", "24", "50"]) == 0
     assert "NASCET 50%" in capsys.readouterr().out
     for argv in (["--spacing", "0", "0.5", "0.5"], ["--vein-gap", "-1"], ["--venous-fraction", "1"],
-                 ["--nascet", "0.99"], ["--stenosis", "0.97"], ["--modality", "mr", "--calcium-hu", "500"]):
+                 ["--nascet", "0.99"], ["--stenosis", "0.97"], ["--modality", "mr", "--calcium-hu", "500"],
+                 ["--noise-seed", "-1"]):
         assert main(["phantom", str(tmp_path / "bad"), *argv]) == 2
         err = capsys.readouterr().err.strip()
         assert err.startswith("carotid: error:") and "\n" not in err and "Traceback" not in err

@@ -486,7 +486,8 @@ def make_phantom(stenosis: float | None = None, noise: float | None = None, seed
                  bolus_fade: float | None = None,
                  ica_shape: str | None = None,
                  modality: str | None = None,
-                 bias: float | None = None) -> Phantom:
+                 bias: float | None = None,
+                 noise_seed: int | None = None) -> Phantom:
     """Generate a carotid angiogram phantom (CTA or contrast-enhanced MRA) with its ground truth.
 
     With none of the keyword-only family parameters (``nascet`` excepted) the legacy model is used
@@ -506,6 +507,10 @@ def make_phantom(stenosis: float | None = None, noise: float | None = None, seed
         of the lumen-tissue contrast), where it is the sigma of each Rician component.
     seed : int
         Random seed (>= 0): anatomy, contrast, distractor placement and noise.
+    noise_seed : int, optional
+        Seed (>= 0) of the image noise alone: the same anatomy, contrast, texture and bias field
+        with an independent noise draw, as a rescan of the same patient (test-retest). None: the
+        noise is drawn with the anatomy, from ``seed``.
     spacing : tuple of 3 float
         Voxel size (x, y, z) in mm, e.g. (0.4, 0.4, 0.4) to (0.5, 0.5, 1.0).
     extent : tuple of 3 float
@@ -585,6 +590,9 @@ def make_phantom(stenosis: float | None = None, noise: float | None = None, seed
     nascet = _number("NASCET stenosis", nascet)
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise CarotidError(f"seed {seed!r} must be a non-negative integer")
+    if noise_seed is not None and (isinstance(noise_seed, bool) or not isinstance(noise_seed, (int, np.integer))
+                                   or noise_seed < 0):
+        raise CarotidError(f"noise seed {noise_seed!r} must be a non-negative integer")
     spacing = _triple("spacing", spacing)
     extent = _triple("extent", extent)
     if blur_fwhm is not None and blur_sigma_mm is not None:
@@ -620,13 +628,16 @@ def make_phantom(stenosis: float | None = None, noise: float | None = None, seed
         raise CarotidError(f"extent {list(extent)} mm at spacing {list(spacing)} mm gives {list(shape)} voxels; "
                            f"need at least one and at most {MAX_VOXELS:,} voxels")
 
-    parameters = {"stenosis": stenosis, "nascet": nascet, "noise": noise, "seed": int(seed),
+    parameters = {"stenosis": stenosis, "nascet": nascet, "noise": noise, "seed": int(seed), "noise_seed": noise_seed,
                   "spacing": list(spacing), "extent": list(extent), "blur_fwhm": blur_fwhm, **family_values}
     parameters = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in parameters.items() if v is not None}
 
     # --- anatomy
     rng = np.random.default_rng(seed)
     draws = _legacy_draws(rng)
+    # the noise's streams: the anatomy's own, or independent ones for a rescan
+    noise_rng = rng if noise_seed is None else np.random.default_rng([seed, 7, noise_seed])
+    rician_rng = np.random.default_rng([seed, 6] if noise_seed is None else [seed, 8, noise_seed])
     branches, desc, k, radius_of = _arteries(draws, None if stenosis is None else s_val, nascet, seed)
     if family:
         if shape_kind != "smooth" and extent[2] < 60.0:
@@ -702,7 +713,7 @@ def make_phantom(stenosis: float | None = None, noise: float | None = None, seed
         sigma_mm = np.array([1.25, 1.0, 1.0]) * (1.0 if blur_fwhm_v is None else blur_fwhm_v) / 2.355
         hu = ndimage.gaussian_filter(hu, sigma_mm / grid.spacing_kji)
         if noise_v > 0:
-            white = ndimage.gaussian_filter(rng.standard_normal(shape).astype(np.float32), 0.6)
+            white = ndimage.gaussian_filter(noise_rng.standard_normal(shape).astype(np.float32), 0.6)
             hu += noise_v * white / white.std()
         image = np.round(hu).astype(np.float32)
         fat_occ = None
@@ -776,9 +787,9 @@ def make_phantom(stenosis: float | None = None, noise: float | None = None, seed
         if noise_v is None:
             noise_v = 0.04 * (prox - tissue)
         if noise_v > 0:
-            img += noise_v * _unit_noise(rng, shape)
+            img += noise_v * _unit_noise(noise_rng, shape)
             if mr:  # Rician magnitude: the second (imaginary) component
-                img = np.sqrt(img ** 2 + (noise_v * _unit_noise(np.random.default_rng([seed, 6]), shape)) ** 2)
+                img = np.sqrt(img ** 2 + (noise_v * _unit_noise(rician_rng, shape)) ** 2)
         elif mr:
             img = np.abs(img)
         image = np.round(img).astype(np.float32)
