@@ -20,8 +20,10 @@ same anatomy are ``bench_segmentation``'s; this splits carotid's own error.
 Usage (from the repository root)::
 
     .venv/bin/python benchmarks/rescan.py [--first-seed F] [--cases N] [--draws K] [--jobs J]
+        [--variant NAME=VALUE[,NAME=VALUE...]]
 
-Writes ``results/rescan.json`` (about 35 minutes for 30 cases of 4 draws with ``--jobs 2``).
+Writes ``results/rescan.json`` (19 minutes for 30 cases of 6 draws with ``--jobs 2``), or with
+``--variant`` (carotid with those ``SegmentParameters`` overrides) ``results/rescan_variant.json``.
 """
 
 from __future__ import annotations
@@ -32,15 +34,18 @@ from multiprocessing import Pool
 import numpy as np
 
 from _common import git_state, write_results
-from bench_segmentation import CRITERIA, grade, log, meets, meets_all, non_negative, run_carotid, score
+from bench_segmentation import (CRITERIA, grade, log, meets, meets_all, non_negative, parse_variant, run_carotid,
+                                score)
+from carotid.segment import SegmentParameters
 from carotid.phantom import make_phantom
 from carotid.phantom.family import sample_family
 
 FIGURES = ("nascet_error_points", "min_diameter_error_mm")
 
 
-def run_case(seed: int, draws: int) -> dict:
-    """carotid on ``draws`` scans of family case ``seed``: its own noise, then noise seeds 1, 2, ..."""
+def run_case(seed: int, draws: int, overrides: dict) -> dict:
+    """carotid (``SegmentParameters(**overrides)``) on ``draws`` scans of family case ``seed``: its own noise,
+    then noise seeds 1, 2, ..."""
     kwargs = sample_family(seed)
     case = {"seed": seed, "modality": kwargs["modality"], "noise": kwargs["noise"], "draws": []}
     truth = None
@@ -51,7 +56,7 @@ def run_case(seed: int, draws: int) -> dict:
             case.update(truth=phantom.info["stenosis"], truth_graded=truth)
         s = phantom.info["seeds_mm"]
         seeds = np.array([s["CCA"], s["ICA"], s["ECA"]], float)
-        scored = score(run_carotid(phantom.image, seeds), phantom, truth)
+        scored = score(run_carotid(phantom.image, seeds, SegmentParameters(**overrides)), phantom, truth)
         case["draws"].append({"noise_seed": draw or None,
                               **{k: scored.get(k) for k in ("dice", "leak_fraction", *FIGURES)}})
         log(f"case {seed:2d} draw {draw}: NASCET {_fmt(scored.get(FIGURES[0]), '+.1f')} points, "
@@ -111,19 +116,22 @@ def main() -> None:
     parser.add_argument("--cases", type=non_negative(int), default=30)
     parser.add_argument("--draws", type=non_negative(int), default=6, help="scans per case, at least 2 (default 6)")
     parser.add_argument("--jobs", type=non_negative(int), default=1)
+    parser.add_argument("--variant", type=parse_variant, default={}, metavar="NAME=VALUE[,NAME=VALUE...]",
+                        help="SegmentParameters overrides in place of the defaults (results/rescan_variant.json)")
     options = parser.parse_args()
     if options.draws < 2:
         parser.error("--draws must be at least 2: the spread needs two scans")
     git = git_state()
     seeds = range(options.first_seed, options.first_seed + options.cases)
     with Pool(max(options.jobs, 1)) as pool:
-        cases = pool.starmap(run_case, [(seed, options.draws) for seed in seeds], chunksize=1)
+        cases = pool.starmap(run_case, [(seed, options.draws, options.variant) for seed in seeds], chunksize=1)
     summary = summarise(cases)
     for key, entry in summary.items():
         log(f"summary {key}: every draw {entry['every_draw']}, some {entry['some_draws']}, none {entry['no_draw']}; "
             f"first draw {entry['first_draw']}, expected {entry['expected']:.1f} of {entry['cases']}")
-    write_results("rescan", {"git": git, "family_seeds": f"range({seeds.start}, {seeds.stop})",
-                             "draws": options.draws, "cases": cases, "summary": summary})
+    write_results("rescan_variant" if options.variant else "rescan", {
+        "git": git, "family_seeds": f"range({seeds.start}, {seeds.stop})", "draws": options.draws,
+        "overrides": options.variant, "cases": cases, "summary": summary})
 
 
 if __name__ == "__main__":
