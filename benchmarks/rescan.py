@@ -20,10 +20,11 @@ same anatomy are ``bench_segmentation``'s; this splits carotid's own error.
 Usage (from the repository root)::
 
     .venv/bin/python benchmarks/rescan.py [--first-seed F] [--cases N] [--draws K] [--jobs J]
-        [--variant NAME=VALUE[,NAME=VALUE...]]
+        [--variant NAME=VALUE[,NAME=VALUE...]] [--name NAME]
 
 Writes ``results/rescan.json`` (19 minutes for 30 cases of 6 draws with ``--jobs 2``), or with
-``--variant`` (carotid with those ``SegmentParameters`` overrides) ``results/rescan_variant.json``.
+``--variant`` (carotid with those ``SegmentParameters`` overrides) ``results/rescan_variant.json``;
+``--name`` names another.
 """
 
 from __future__ import annotations
@@ -117,7 +118,9 @@ def main() -> None:
     parser.add_argument("--draws", type=non_negative(int), default=6, help="scans per case, at least 2 (default 6)")
     parser.add_argument("--jobs", type=non_negative(int), default=1)
     parser.add_argument("--variant", type=parse_variant, default={}, metavar="NAME=VALUE[,NAME=VALUE...]",
-                        help="SegmentParameters overrides in place of the defaults (results/rescan_variant.json)")
+                        help="SegmentParameters overrides in place of the defaults")
+    parser.add_argument("--name", default=None,
+                        help="results file (default rescan, with --variant rescan_variant)")
     options = parser.parse_args()
     if options.draws < 2:
         parser.error("--draws must be at least 2: the spread needs two scans")
@@ -129,7 +132,8 @@ def main() -> None:
     for key, entry in summary.items():
         log(f"summary {key}: every draw {entry['every_draw']}, some {entry['some_draws']}, none {entry['no_draw']}; "
             f"first draw {entry['first_draw']}, expected {entry['expected']:.1f} of {entry['cases']}")
-    write_results("rescan_variant" if options.variant else "rescan", {
+    name = options.name or ("rescan_variant" if options.variant else "rescan")
+    write_results(name, {
         "git": git, "family_seeds": f"range({seeds.start}, {seeds.stop})", "draws": options.draws,
         "overrides": options.variant, "cases": cases, "summary": summary})
 
