@@ -37,9 +37,9 @@ import numpy as np
 from _common import git_state, write_results
 from bench_segmentation import (CRITERIA, grade, log, meets, meets_all, non_negative, parse_variant, run_carotid,
                                 score)
-from carotid.segment import SegmentParameters
 from carotid.phantom import make_phantom
 from carotid.phantom.family import sample_family
+from carotid.segment import SegmentParameters
 
 FIGURES = ("nascet_error_points", "min_diameter_error_mm")
 
@@ -67,6 +67,7 @@ def run_case(seed: int, draws: int, overrides: dict) -> dict:
 
 
 def _fmt(value, spec: str) -> str:
+    """``value`` formatted by ``spec``, or "-" for a figure that could not be graded."""
     return "-" if value is None else format(value, spec)
 
 
