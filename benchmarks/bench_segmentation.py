@@ -180,6 +180,12 @@ def signed_distance_of_mask(mask: np.ndarray, spacing_kji) -> np.ndarray:
 
 # ----------------------------------------------------------------------------------------------- methods
 
+def branch_seeds(phantom) -> np.ndarray:
+    """The phantom's seed points in the CCA, ICA and ECA (mm, world), shape (3, 3): one per branch."""
+    s = phantom.info["seeds_mm"]
+    return np.array([s["CCA"], s["ICA"], s["ECA"]], float)
+
+
 def run_carotid(volume: Volume, seeds, params: SegmentParameters | None = None) -> dict:
     """carotid's ``segment`` from ``seeds`` with ``params`` (default: the defaults)."""
     result, seconds = timed(segment, volume, seeds_xyz=seeds, params=params or SegmentParameters())
@@ -358,8 +364,7 @@ def run_case(seed: int) -> dict:
     kwargs = sample_family(seed)
     phantom, gen_seconds = timed(make_phantom, **kwargs)
     volume = phantom.image
-    s = phantom.info["seeds_mm"]
-    seeds = np.array([s["CCA"], s["ICA"], s["ECA"]], float)
+    seeds = branch_seeds(phantom)
     truth = phantom.info["stenosis"]
     case = {"seed": seed, "kwargs": kwargs, "shape_kji": list(volume.array.shape), "generation_seconds": gen_seconds,
             "seeds_mm": seeds, "truth": {"nascet": truth["nascet"], "min_diameter_mm": narrowest_ica_diameter(phantom),
@@ -539,8 +544,7 @@ def run_large(quick: bool) -> dict:
     kwargs = {**sample_family(LARGE_SEED), **(QUICK_LARGE if quick else LARGE)}
     phantom, gen_seconds = timed(make_phantom, **kwargs)
     volume = phantom.image
-    s = phantom.info["seeds_mm"]
-    seeds = np.array([s["CCA"], s["ICA"], s["ECA"]], float)
+    seeds = branch_seeds(phantom)
     log(f"large case: {volume.array.shape} generated in {gen_seconds:.1f} s")
     out = {"kwargs": kwargs, "shape_kji": list(volume.array.shape), "generation_seconds": gen_seconds,
            "cpu_usable": len(os.sched_getaffinity(0))}
@@ -750,8 +754,7 @@ def run_variants(variants: dict[str, dict], seeds, noise_scale: float = 1.0, thi
         kwargs = sample_family(seed)
         kwargs["noise"] = kwargs["noise"] * noise_scale
         phantom = make_phantom(**kwargs)
-        s = phantom.info["seeds_mm"]
-        points = np.array([s["CCA"], s["ICA"], s["ECA"]], float)
+        points = branch_seeds(phantom)
         tg = grade(phantom.sdf.array, phantom.mask.array > 0, phantom.image)
         case = {"seed": seed, "noise": kwargs["noise"], "truth": phantom.info["stenosis"], "truth_graded": tg,
                 "methods": {}}

@@ -60,7 +60,7 @@ import numpy as np
 import carotid.segment.deblur as deblur_module
 import carotid.segment.segmentation as segmentation
 from _common import git_state, write_results
-from bench_segmentation import grade, log, meets, non_negative, recorded_thickness, score
+from bench_segmentation import branch_seeds, grade, log, meets, non_negative, recorded_thickness, score
 from carotid.phantom import make_phantom
 from carotid.phantom.ct import bolus_level
 from carotid.phantom.family import sample_family
@@ -156,8 +156,7 @@ def run_case(seed: int) -> dict:
         kwargs = sample_family(seed)
         kwargs["noise"] = kwargs["noise"] * noise_scale
         phantom = make_phantom(**kwargs)
-        s = phantom.info["seeds_mm"]
-        seeds_xyz = np.array([s["CCA"], s["ICA"], s["ECA"]], float)
+        seeds_xyz = branch_seeds(phantom)
         seeds_kji = phantom.image.world_to_index(seeds_xyz)
         if truth is None:
             truth = grade(phantom.sdf.array, phantom.mask.array > 0, phantom.image)

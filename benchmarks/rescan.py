@@ -35,8 +35,8 @@ from multiprocessing import Pool
 import numpy as np
 
 from _common import git_state, write_results
-from bench_segmentation import (CRITERIA, grade, log, meets, meets_all, non_negative, parse_variant, run_carotid,
-                                score)
+from bench_segmentation import (CRITERIA, branch_seeds, grade, log, meets, meets_all, non_negative, parse_variant,
+                                run_carotid, score)
 from carotid.phantom import make_phantom
 from carotid.phantom.family import sample_family
 from carotid.segment import SegmentParameters
@@ -55,9 +55,8 @@ def run_case(seed: int, draws: int, overrides: dict) -> dict:
         if truth is None:
             truth = grade(phantom.sdf.array, phantom.mask.array > 0, phantom.image)
             case.update(truth=phantom.info["stenosis"], truth_graded=truth)
-        s = phantom.info["seeds_mm"]
-        seeds = np.array([s["CCA"], s["ICA"], s["ECA"]], float)
-        scored = score(run_carotid(phantom.image, seeds, SegmentParameters(**overrides)), phantom, truth)
+        run = run_carotid(phantom.image, branch_seeds(phantom), SegmentParameters(**overrides))
+        scored = score(run, phantom, truth)
         case["draws"].append({"noise_seed": draw or None,
                               **{k: scored.get(k) for k in ("dice", "leak_fraction", *FIGURES)}})
         log(f"case {seed:2d} draw {draw}: NASCET {_fmt(scored.get(FIGURES[0]), '+.1f')} points, "
