@@ -439,6 +439,12 @@ def _number(name: str, value, low: float | None = None, high: float | None = Non
     return x
 
 
+def _check_seed(name: str, value) -> None:
+    """Raise ``CarotidError`` unless ``value`` is a non-negative integer (a bool is not one)."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
+        raise CarotidError(f"{name} {value!r} must be a non-negative integer")
+
+
 def _triple(name: str, value) -> tuple[float, float, float]:
     try:
         out = tuple(float(v) for v in value)
@@ -588,11 +594,9 @@ def make_phantom(stenosis: float | None = None, noise: float | None = None, seed
         if not 0.0 <= s_val < MAX_STENOSIS:
             raise CarotidError(f"stenosis {stenosis} must be an area fraction in [0, {MAX_STENOSIS})")
     nascet = _number("NASCET stenosis", nascet)
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise CarotidError(f"seed {seed!r} must be a non-negative integer")
-    if noise_seed is not None and (isinstance(noise_seed, bool) or not isinstance(noise_seed, (int, np.integer))
-                                   or noise_seed < 0):
-        raise CarotidError(f"noise seed {noise_seed!r} must be a non-negative integer")
+    _check_seed("seed", seed)
+    if noise_seed is not None:
+        _check_seed("noise seed", noise_seed)
     spacing = _triple("spacing", spacing)
     extent = _triple("extent", extent)
     if blur_fwhm is not None and blur_sigma_mm is not None:
