@@ -31,7 +31,11 @@ phantom's truth:
 and the same on the case with its noise scaled by 0.02
 (``noise_free_defaults``, ``noise_free_true_model``,
 ``noise_free_true_model_converged``, and
-``noise_free_true_model_from_truth``: converged from the true wall).  Each
+``noise_free_true_model_from_truth``: converged from the true wall), with
+two more that separate the model's estimates from its regularisation:
+``noise_free_converged`` (carotid's own estimates, converged) and
+``noise_free_true_z_blur_converged`` (only the through-plane blur from the
+truth, converged).  Each
 result goes through the same lumen clean-up as ``segment``
 (``segmentation.lumen_levelset``) and is scored by
 ``bench_segmentation.score``: NASCET error against the true lumen graded the
@@ -173,6 +177,9 @@ def run_case(seed: int) -> dict:
             runs["true_z_blur"] = lambda: rerun(args, seeds_kji, thickness)
             runs["true_blur"] = lambda: rerun(args, seeds_kji, thickness, blur=blur)
             runs["true_levels"] = lambda: rerun(args, seeds_kji, levels=levels)
+        if prefix:
+            runs["converged"] = lambda: rerun(args, seeds_kji, **CONVERGED)
+            runs["true_z_blur_converged"] = lambda: rerun(args, seeds_kji, thickness, **CONVERGED)
         runs["true_model"] = lambda: rerun(args, seeds_kji, thickness, levels, blur=blur)
         runs["true_model_converged"] = lambda: rerun(args, seeds_kji, thickness, levels, blur=blur, **CONVERGED)
         if prefix:
