@@ -45,6 +45,7 @@ from carotid.errors import CarotidError
 MAD_TO_SD = 1.4826
 # Iodinated blood stays below this in any CT angiography protocol; cortical bone and calcium lie above it.
 CT_NOT_LUMEN_HU = 800.0
+TILT_BINS = (0.0, 0.25, 0.5, 0.75, 1.0 + 1e-9)  # |n_k| bins of through_plane_variance
 
 
 @dataclass(frozen=True)
@@ -306,18 +307,131 @@ def edge_blur(image: np.ndarray, box, bright: np.ndarray, level: float, spacing_
         return None
     raw = ndimage.map_coordinates(crop, (points[:, clean].reshape(-1, 3) / spacing).T, order=1,
                                   mode="nearest").reshape(len(d), -1)
-    median = np.median(raw, axis=1)
+    return step_width(d, np.median(raw, axis=1), float(spacing.min()))
+
+
+def step_width(d: np.ndarray, profile: np.ndarray, start_mm: float) -> float | None:
+    """Standard deviation (mm) of the Gaussian step ``B + C Phi(-(d - d0) / sigma)``, ``C >= 0``, fitted to an
+    intensity profile (scipy's ``curve_fit``), bright at negative ``d``.
+
+    Parameters
+    ----------
+    d : ndarray, shape (n,)
+        Distances along the profile, mm, symmetric about the edge.
+    profile : ndarray, shape (n,)
+    start_mm : float
+        Initial guess of sigma.
+
+    Returns
+    -------
+    float or None
+        None if the fit fails.
+    """
+    reach = float(d[-1])
 
     def step(x, b, c, x0, sigma):
         return b + c * special.ndtr(-(x - x0) / sigma)
 
-    start = [float(median[-1]), float(median[0] - median[-1]), 0.0, float(spacing.min())]
+    start = [float(profile[-1]), float(profile[0] - profile[-1]), 0.0, start_mm]
     try:
-        bounds = ([-np.inf, 0, -reach_mm, 0.05], [np.inf, np.inf, reach_mm, reach_mm])
-        (_, _, _, sigma), _ = optimize.curve_fit(step, d, median, p0=start, bounds=bounds)
+        bounds = ([-np.inf, 0, -reach, 0.05], [np.inf, np.inf, reach, reach])
+        (_, _, _, sigma), _ = optimize.curve_fit(step, d, profile, p0=start, bounds=bounds)
     except (RuntimeError, ValueError):
         return None
     return float(sigma)
+
+
+def through_plane_variance(image: np.ndarray, box, ceiling: float, spacing_kji, smooth_mm: float = 0.7,
+                           depth_mm: float = 1.2, reach_mm: float = 2.0, min_points: int = 200) -> float | None:
+    """Variance (mm^2) the blur adds along the slice axis k beyond its in-plane variance, from the image alone.
+
+    A scanner blurs along its slice axis by its slice sensitivity profile, which is independent of the blur
+    within the slices and, in CT, usually wider than it; ``edge_blur`` cannot see it, because the lumen's
+    edges face sideways.  The edges between the two most common tissues below ``ceiling`` (fat and muscle,
+    ``tissue_levels``) face every way.  An edge whose normal ``n`` tilts out of the slices is blurred across
+    by ``sigma_p^2 (1 - n_k^2) + sigma_k^2 n_k^2`` (plus the edge's own width, the same on average whatever
+    its tilt), so the squared width of the median step across the edges, binned by ``n_k^2``, grows linearly
+    with it with slope ``sigma_k^2 - sigma_p^2``.  The profiles are sampled by linear interpolation, which
+    widens them by ``h^2 / 6`` along an axis of spacing ``h``; the slope loses the slices' share of that,
+    ``(h_k^2 - h_min^2) / 6``.
+
+    Parameters
+    ----------
+    image : ndarray, shape (nk, nj, ni)
+    box : tuple of slices
+        Region to measure in (the intensity model's box).
+    ceiling : float
+        Intensities above this are left out of the tissue classes (the lumen's half level).
+    spacing_kji : array_like, shape (3,)
+    smooth_mm : float
+        Gaussian smoothing (mm) of the image the edges and their normals are taken from; the profiles are
+        read on the raw image.
+    depth_mm, reach_mm : float
+        Plateau required on each side (within a quarter of the tissues' contrast of their levels), and the
+        profiles' half-length, mm.
+    min_points : int
+        Fewest edge points in a tilt bin; fewer than three such bins: no estimate.
+
+    Returns
+    -------
+    float or None
+        ``sigma_k^2 - sigma_p^2`` (mm^2, at least 0), or None if the image has too few clean tissue edges.
+    """
+    spacing = np.asarray(spacing_kji, float)
+    crop = np.asarray(image[box], np.float32)
+    smooth = ndimage.gaussian_filter(crop, smooth_mm / spacing)
+    levels = tissue_levels(smooth[smooth < ceiling])
+    if levels is None:
+        return None
+    low, high = levels
+    level = 0.5 * (low + high)
+    verts, _, _, _ = marching_cubes(smooth, level, spacing=tuple(spacing), step_size=2, method="lewiner")
+    grad = np.stack([ndimage.map_coordinates(g, (verts / spacing).T, order=1)
+                     for g in np.gradient(smooth, *spacing)], axis=1)
+    norm = np.linalg.norm(grad, axis=1)
+    ok = norm > 0
+    outward = -grad[ok] / norm[ok, None]  # towards the darker tissue
+    verts = verts[ok]
+    d = np.linspace(-reach_mm, reach_mm, 4 * int(np.ceil(reach_mm / spacing.min())) + 1)
+    points = verts[None] + d[:, None, None] * outward[None]
+    profiles = ndimage.map_coordinates(smooth, (points.reshape(-1, 3) / spacing).T, order=1,
+                                       mode="nearest").reshape(len(d), -1)
+    tolerance = 0.25 * (high - low)
+    clean = (np.all(np.abs(profiles[d <= -depth_mm] - high) < tolerance, axis=0)
+             & np.all(np.abs(profiles[d >= depth_mm] - low) < tolerance, axis=0))
+    raw = ndimage.map_coordinates(crop, (points[:, clean].reshape(-1, 3) / spacing).T, order=1,
+                                  mode="nearest").reshape(len(d), -1)
+    tilt2 = outward[clean, 0] ** 2
+    rows = []
+    for lo, hi in zip(TILT_BINS[:-1], TILT_BINS[1:]):
+        in_bin = (tilt2 >= lo ** 2) & (tilt2 < hi ** 2)
+        if np.count_nonzero(in_bin) >= min_points:
+            width = step_width(d, np.median(raw[:, in_bin], axis=1), float(spacing.min()))
+            if width is not None:
+                rows.append((float(tilt2[in_bin].mean()), width ** 2, np.count_nonzero(in_bin)))
+    if len(rows) < 3:
+        return None
+    x, y, n = np.array(rows).T
+    weight = np.sqrt(n)
+    _, slope = np.linalg.lstsq(np.column_stack([np.ones_like(x), x]) * weight[:, None], y * weight, rcond=None)[0]
+    return max(float(slope) - (spacing[0] ** 2 - spacing.min() ** 2) / 6.0, 0.0)
+
+
+def tissue_levels(values: np.ndarray, bins: int = 200) -> tuple[float, float] | None:
+    """The two most common intensities among ``values``: the two highest peaks of their histogram (1st-99th
+    percentile, 200 bins smoothed by 2), in increasing order; None if it has fewer than two peaks."""
+    if values.size < 1000:
+        return None
+    lo, hi = np.percentile(values, [1, 99])
+    counts, edges = np.histogram(values[(values > lo) & (values < hi)], bins)
+    counts = ndimage.gaussian_filter1d(counts.astype(float), 2.0)
+    peaks = np.flatnonzero((counts > np.roll(counts, 1)) & (counts >= np.roll(counts, -1)))
+    peaks = peaks[(peaks > 0) & (peaks < bins - 1)]
+    if len(peaks) < 2:
+        return None
+    centres = 0.5 * (edges[1:] + edges[:-1])
+    two = np.sort(centres[peaks[np.argsort(counts[peaks])[-2:]]])
+    return float(two[0]), float(two[1])
 
 
 def provisional_window(image: np.ndarray) -> tuple[float, float, float]:

@@ -25,7 +25,7 @@ from carotid.segment.deblur import model_blur, reach_mm, refine
 from carotid.segment.handles import remove_handles
 from carotid.segment.init import automatic_region, check_points, mask_levelset, seed_levelset, seed_sample
 from carotid.segment.intensity import (IntensityModel, estimate_from_sample, local_level, local_radius,
-                                       provisional_window)
+                                       provisional_window, through_plane_variance)
 from carotid.segment.levelset import evolve, signed_distance
 from carotid.segment.metrics import topology
 from carotid.segment.potential import gpf_potential
@@ -105,6 +105,10 @@ class SegmentParameters:
         Slice thickness (mm) whose boxcar that model adds along the slice axis; 0: the thickness the scan
         records (``Volume.slice_thickness``: DICOM SliceThickness, a dcm2niix sidecar), else the slice
         spacing.  Overlapping slices (1 mm every 0.5 mm) blur along the vessel more than their spacing says.
+    measure_slice_blur : bool
+        Unless ``slice_thickness_mm`` is given, blur that model along the slice axis by the blur measured on the
+        image (``intensity.through_plane_variance``: the tilt dependence of the tissue edges' width), as the
+        slice thickness that reproduces it; the scan's record or the slice spacing where it cannot be measured.
     handle_mm : float
         Largest half-width (mm) of a bridge cut or a tunnel filled to remove the lumen's handles, which a vessel
         tree does not have (``handles`` module); 0 keeps them.
@@ -182,6 +186,7 @@ class SegmentParameters:
     deblur_smooth_mm: float = 1.0
     deblur_slices: bool = True
     slice_thickness_mm: float = 0.0
+    measure_slice_blur: bool = False
     handle_mm: float = 1.5
     denoise_iterations: int = 0
     kernel_radius_mm: float = 10.0
@@ -345,11 +350,20 @@ def barrier_of(image01: np.ndarray, window, model: IntensityModel, spacing_kji, 
     return out
 
 
-def slice_thickness(volume: Volume, params: SegmentParameters) -> tuple[float | None, str]:
-    """Slice thickness (mm) the blur model adds along k, and where it comes from: the parameter, the scan's
-    record (``Volume.slice_thickness``) or, as None, the slice spacing."""
+def slice_thickness(volume: Volume, params: SegmentParameters, model: IntensityModel) -> tuple[float | None, str]:
+    """Slice thickness (mm) the blur model adds along k, and where it comes from: the parameter, the blur
+    measured on the image (``measure_slice_blur``), the scan's record (``Volume.slice_thickness``) or, as None,
+    the slice spacing.
+
+    A measured through-plane variance ``v`` (``intensity.through_plane_variance``) is given as the thickness
+    ``T = sqrt(12 v + h_min^2)`` whose boxcar ``deblur.axis_blur`` adds to the in-plane blur as ``v``."""
     if params.slice_thickness_mm > 0:
         return float(params.slice_thickness_mm), "parameter"
+    if params.measure_slice_blur:
+        ceiling = model.background + 0.5 * (model.lumen - model.background)
+        variance = through_plane_variance(volume.array, model.box, ceiling, volume.spacing_kji)
+        if variance is not None:
+            return float(np.sqrt(12.0 * variance + float(np.min(volume.spacing_kji)) ** 2)), "measured"
     if volume.slice_thickness is not None:
         return float(volume.slice_thickness), "image"
     return None, "slice spacing"
@@ -624,7 +638,7 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
             iterations[-1] += more
         converged.append(result.converged)
     del ghat, g, image01
-    thickness, thickness_source = slice_thickness(volume, params)
+    thickness, thickness_source = slice_thickness(volume, params, model)
     if params.deblur and model.blur:
         phi = deblur(image, phi, spacing, model, params, stopped, dense, thickness)
     timings["evolution_s"] = time.perf_counter() - t1
