@@ -9,12 +9,13 @@ import pytest
 from scipy import ndimage
 
 from carotid.io import Volume
-from carotid.segment import SegmentParameters, calcium, deblur, segment
+from carotid.segment import SegmentParameters, calcium, deblur, segment, segmentation
 from carotid.segment.calcium import hyperdense_edge
 from carotid.segment.deblur import normal_background, refine
-from carotid.segment.intensity import edge_blur, local_level, wide_gaussian
+from carotid.segment.intensity import edge_blur, local_level, through_plane_variance, wide_gaussian
 
 B, A, P = 40.0, 300.0, 1000.0  # tissue, lumen and calcium levels (HU)
+FAT = -100.0
 SPACING = np.array([0.3, 0.25, 0.25])  # (k, j, i) mm, anisotropic
 
 
@@ -37,6 +38,35 @@ def tube_sdf(shape, radius):
     """Signed distance (mm) of a straight tube of ``radius`` along k."""
     _, y, x = grid(shape)
     return np.hypot(x, y) - radius
+
+
+def fat_lobules(shape, spacing, sigma_kji, noise, seed=0):
+    """Fat lobules in muscle (a smoothed random field cut at a level, edges facing every way), sampled at the
+    voxel centres after a Gaussian blur of standard deviations ``sigma_kji`` (mm), with noise (HU)."""
+    rng = np.random.default_rng(seed)
+    field = ndimage.gaussian_filter(rng.standard_normal(shape), 3.0 / np.asarray(spacing))
+    fat = np.clip(0.5 + (field / field.std() - 0.7) / 0.25, 0.0, 1.0)
+    image = ndimage.gaussian_filter(B + (FAT - B) * fat, np.asarray(sigma_kji) / np.asarray(spacing))
+    return (image + rng.normal(0.0, noise, shape)).astype(np.float32)
+
+
+@pytest.mark.parametrize("sigma_k", [0.6, 0.95])
+def test_the_blur_along_the_slices_is_measured_on_tissue_edges(sigma_k):
+    """0.9 mm slices of 0.45 mm pixels, blurred by 0.6 mm within the slices and ``sigma_k`` across them: the
+    variance the slice axis adds is measured within 0.06 mm^2 (sigma_k within about 3 %), zero included.  Read
+    along a wrong axis, or without the slices' share of the interpolation's widening (+0.10 mm^2), it is not."""
+    spacing = np.array([0.9, 0.45, 0.45])
+    image = fat_lobules((48, 96, 96), spacing, (sigma_k, 0.6, 0.6), noise=20.0)
+    measured = through_plane_variance(image, (slice(None),) * 3, 200.0, spacing)
+    assert measured == pytest.approx(sigma_k ** 2 - 0.6 ** 2, abs=0.06)
+
+
+def test_no_tissue_edges_no_slice_blur():
+    """A lumen in uniform tissue has one tissue class below its half level: no estimate rather than a wrong one."""
+    shape = (40, 64, 64)
+    image = (B + (A - B) * blurred(occupancy(tube_sdf(shape, 4.0)), 0.6)
+             + np.random.default_rng(2).normal(0, 20, shape)).astype(np.float32)
+    assert through_plane_variance(image, (slice(None),) * 3, 0.5 * (A + B), SPACING) is None
 
 
 @pytest.mark.parametrize("sigma", [0.4, 0.6, 0.8])
@@ -416,3 +446,20 @@ def test_segment_takes_the_slice_thickness_from_the_scan_or_the_parameter():
     assert abs(radius["image"] - 1.1) < abs(radius["spacing"] - 1.1) - 0.02
     # A parameter equal to the spacing gives the spacing's wall.
     assert radius["parameter"] == pytest.approx(radius["spacing"], abs=1e-6)
+
+
+def test_a_measured_slice_blur_reaches_the_model_and_the_report(monkeypatch):
+    """``measure_slice_blur``: the measured variance ``v`` becomes the thickness whose boxcar adds ``v`` to the
+    in-plane blur along k; a given thickness overrides it, and without tissue edges the spacing is kept."""
+    image, spacing, _ = throat_image(slices=7, step=2, nc=25, length=1.0)
+    volume = Volume(image, spacing=tuple(spacing[::-1]), origin=(-9.45, -9.45, -7.2))
+    seeds = [[0.0, 0.0, -6.0], [0.0, 0.0, 6.0]]
+    unmeasured = segment(volume, seeds_xyz=seeds, params=SegmentParameters(measure_slice_blur=True))
+    assert unmeasured.report["intensity"]["slice_thickness_source"] == "slice spacing"
+    monkeypatch.setattr(segmentation, "through_plane_variance", lambda *args: 0.25)
+    runs = {parameter: segment(volume, seeds_xyz=seeds, params=SegmentParameters(
+        measure_slice_blur=True, slice_thickness_mm=parameter)) for parameter in (0.0, 0.6)}
+    measured = runs[0.0].report["intensity"]
+    assert measured["slice_thickness_source"] == "measured"
+    assert measured["model_blur_kji_mm"][0] == pytest.approx(np.hypot(measured["blur_mm"], 0.5))
+    assert runs[0.6].report["intensity"]["slice_thickness_source"] == "parameter"
