@@ -27,6 +27,9 @@ intensity axis.  This module measures that on the image:
   width of a Gaussian step fitted to the median intensity profile across it.
   The calcium model (``calcium``) needs it to predict how far a calcification's
   blur reaches.
+* ``through_plane_variance`` measures what the slice axis adds to that blur, on
+  the edges between the two commonest tissues (fat and muscle), which face
+  every way: their width grows with their tilt out of the slices.
 
 Written here because the estimate is specific to a bright tubular lumen; the
 statistics themselves are numpy/scipy, the isosurface scikit-image's.

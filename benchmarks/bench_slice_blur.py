@@ -1,0 +1,115 @@
+"""The blur along the slice axis measured on the image, against the phantom's truth and the slice-spacing model.
+
+``segment``'s refinement blurs its lumen model along the slice axis by the
+in-plane blur ``edge_blur`` measures plus the boxcar of the slice thickness
+(``deblur.axis_blur``; the scan's record, else the slice spacing).  The
+phantom family, like a CT scanner's slice sensitivity profile, blurs along z
+more than that: 1.25 times the in-plane Gaussian, plus the slice's boxcar.
+``measure_slice_blur`` measures the difference on the image instead
+(``intensity.through_plane_variance``: the width of the fat/muscle edges
+against their tilt out of the slices).  For each family case this script
+builds the intensity model ``segment`` builds from one seed per branch and
+compares, as the model's blur along k (mm):
+
+* ``oracle``: the measured in-plane blur plus the phantom's true extra
+  variance along z, ``sqrt(blur^2 + sigma_z^2 - sigma^2)`` (what
+  ``bench_segmentation.recorded_thickness`` gives the model);
+* ``slices``: the default, ``sqrt(blur^2 + (h_k^2 - h_min^2) / 12)``;
+* ``measured``: ``sqrt(blur^2 + through_plane_variance)``, or no estimate.
+
+Usage (from the repository root)::
+
+    .venv/bin/python benchmarks/bench_slice_blur.py [--first-seed F] [--cases N] [--repeat R]
+
+Writes ``results/slice_blur.json`` (about 4 minutes for 60 cases on one core).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from _common import git_state, write_results
+from bench_segmentation import branch_seeds, log, non_negative
+from carotid.phantom import make_phantom
+from carotid.phantom.family import sample_family
+from carotid.segment.init import seed_levelset, seed_sample
+from carotid.segment.intensity import estimate_from_sample, through_plane_variance
+from carotid.segment.segmentation import SegmentParameters, lumen_sample
+
+
+def intensity_model(phantom):
+    """The intensity model ``segment`` estimates from the phantom's CCA, ICA and ECA seeds."""
+    volume, seeds = phantom.image, branch_seeds(phantom)
+    phi = seed_levelset(volume, seeds, SegmentParameters().seed_radius_mm)
+    sample = lumen_sample(volume.array, seed_sample(phi, volume.world_to_index(seeds)))
+    return estimate_from_sample(volume.array, sample, volume.spacing_kji, "seeds")
+
+
+def run_case(seed: int, repeat: int) -> dict:
+    """One family case: the three blurs along k (mm), their relative errors, and the measurement's time."""
+    phantom = make_phantom(**sample_family(seed))
+    model = intensity_model(phantom)
+    spacing = np.asarray(phantom.image.spacing_kji, float)
+    blur = phantom.info["blur_sigma_mm"]
+    ceiling = model.background + 0.5 * (model.lumen - model.background)
+    seconds, variance = [], None
+    for _ in range(repeat):
+        start = time.perf_counter()
+        variance = through_plane_variance(phantom.image.array, model.box, ceiling, spacing)
+        seconds.append(time.perf_counter() - start)
+    oracle = float(np.sqrt(model.blur ** 2 + blur["z"] ** 2 - blur["in_plane"] ** 2))
+    slices = float(np.sqrt(model.blur ** 2 + (spacing[0] ** 2 - spacing.min() ** 2) / 12.0))
+    measured = None if variance is None else float(np.sqrt(model.blur ** 2 + variance))
+    case = {"seed": seed, "modality": phantom.info["modality"], "spacing_kji_mm": spacing.tolist(),
+            "true_blur_mm": blur, "edge_blur_mm": model.blur,
+            "true_extra_variance_mm2": blur["z"] ** 2 - blur["in_plane"] ** 2, "measured_extra_variance_mm2": variance,
+            "z_blur_mm": {"oracle": oracle, "slices": slices, "measured": measured},
+            "relative_error": {"slices": slices / oracle - 1.0,
+                               "measured": None if measured is None else measured / oracle - 1.0},
+            "seconds": {"min": min(seconds), "median": float(np.median(seconds))}}
+    log(f"case {seed:2d} ({case['modality']}): oracle {oracle:.3f} mm, slices {slices:.3f} "
+        f"({case['relative_error']['slices']:+.1%}), measured "
+        + ("-" if measured is None else f"{measured:.3f} ({case['relative_error']['measured']:+.1%})"))
+    return case
+
+
+def summarise(cases: list[dict]) -> dict:
+    """Per modality and estimate: median and worst relative error of the blur along k, and the cases without
+    an estimate."""
+    out = {}
+    for modality in sorted({c["modality"] for c in cases}):
+        mine = [c for c in cases if c["modality"] == modality]
+        out[modality] = {"cases": len(mine)}
+        for name in ("slices", "measured"):
+            errors = np.array([c["relative_error"][name] for c in mine if c["relative_error"][name] is not None])
+            worst = int(np.argmax(np.abs(errors))) if errors.size else None
+            out[modality][name] = {
+                "median": float(np.median(errors)) if errors.size else None,
+                "median_abs": float(np.median(np.abs(errors))) if errors.size else None,
+                "worst": None if worst is None else float(errors[worst]),
+                "range": [float(errors.min()), float(errors.max())] if errors.size else None,
+                "no_estimate": [c["seed"] for c in mine if c["relative_error"][name] is None]}
+    times = np.array([c["seconds"]["min"] for c in cases])
+    out["seconds"] = {"min": float(times.min()), "median": float(np.median(times)), "max": float(times.max())}
+    return out
+
+
+def main() -> None:
+    """Run the cases and write ``results/slice_blur.json``."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--first-seed", type=non_negative(int), default=0)
+    parser.add_argument("--cases", type=non_negative(int), default=60)
+    parser.add_argument("--repeat", type=non_negative(int), default=3, help="timed measurements per case")
+    options = parser.parse_args()
+    git = git_state()
+    seeds = range(options.first_seed, options.first_seed + options.cases)
+    cases = [run_case(seed, max(options.repeat, 1)) for seed in seeds]
+    write_results("slice_blur", {"git": git, "family_seeds": f"range({seeds.start}, {seeds.stop})",
+                                 "cases": cases, "summary": summarise(cases)})
+
+
+if __name__ == "__main__":
+    main()
