@@ -45,7 +45,7 @@ def _segment_parameters(args):
         "seed_radius_mm": args.seed_radius, "max_iterations": args.max_iterations,
         "chamber_ratio": args.chamber_ratio, "handle_mm": args.handles,
         "wall_trunk_mm": args.wall_trunk, "slice_thickness_mm": args.slice_thickness,
-        "measure_slice_blur": args.measure_slice_blur or None,
+        "measure_slice_blur": args.measure_slice_blur,
     }
     if args.hu_window:
         fields["window"] = list(args.hu_window)
@@ -253,10 +253,10 @@ def _add_segment_options(p: argparse.ArgumentParser) -> None:
                    help="reconstructed slice thickness, when the image file does not record it (DICOM and "
                         "dcm2niix's JSON sidecar do): the blur model spreads each slice over it (default: the "
                         "recorded thickness, else the slice spacing)")
-    p.add_argument("--measure-slice-blur", action="store_true",
-                   help="measure the blur along the slice axis on the image (from how the width of the tissue "
-                        "edges grows as they tilt out of the slices) instead of taking it from the slice "
-                        "thickness; --slice-thickness overrides it")
+    p.add_argument("--measure-slice-blur", action=argparse.BooleanOptionalAction,
+                   help="measure the blur along the slice axis on the image, from how the width of the tissue "
+                        "edges grows as they tilt out of the slices (default), or take it from the slice "
+                        "thickness (--no-measure-slice-blur); --slice-thickness overrides it")
     p.add_argument("--max-iterations", type=int, metavar="N", help="per stage (default 4000)")
     p.add_argument("--wall", action="store_true",
                    help="also segment the whole vessel (lumen, thrombus, wall): segmentation/wall_mask.nii.gz")

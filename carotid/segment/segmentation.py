@@ -109,6 +109,8 @@ class SegmentParameters:
         Unless ``slice_thickness_mm`` is given, blur that model along the slice axis by the blur measured on the
         image (``intensity.through_plane_variance``: the tilt dependence of the tissue edges' width), as the
         slice thickness that reproduces it; the scan's record or the slice spacing where it cannot be measured.
+        A scanner's slice profile blurs along the vessel more than the in-plane blur plus the slice's boxcar,
+        and a model blurred too little there matches a short, tight throat with a wider wall.
     handle_mm : float
         Largest half-width (mm) of a bridge cut or a tunnel filled to remove the lumen's handles, which a vessel
         tree does not have (``handles`` module); 0 keeps them.
@@ -186,7 +188,7 @@ class SegmentParameters:
     deblur_smooth_mm: float = 1.0
     deblur_slices: bool = True
     slice_thickness_mm: float = 0.0
-    measure_slice_blur: bool = False
+    measure_slice_blur: bool = True
     handle_mm: float = 1.5
     denoise_iterations: int = 0
     kernel_radius_mm: float = 10.0
