@@ -294,23 +294,55 @@ def edge_blur(image: np.ndarray, box, bright: np.ndarray, level: float, spacing_
     field = np.where(near, smooth, np.float32(min(level, float(smooth.min())) - 1.0))
     if not (field.max() > level > field.min()):
         return None
-    verts, _, _, _ = marching_cubes(field, level, spacing=tuple(spacing), method="lewiner")
+    d, points, _, profiles = normal_profiles(field, smooth, level, spacing, reach_mm)
+    clean = np.all(profiles[d <= -depth_mm] > level, axis=0) & np.all(profiles[d >= depth_mm] < level, axis=0)
+    if np.count_nonzero(clean) < min_points:
+        return None
+    raw = sample(crop, points[:, clean], spacing)
+    return step_width(d, np.median(raw, axis=1), float(spacing.min()))
+
+
+def normal_profiles(field: np.ndarray, smooth: np.ndarray, level: float, spacing: np.ndarray, reach_mm: float,
+                    step_size: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Intensity profiles of ``smooth`` across the ``level`` isosurface of ``field``, along its normals.
+
+    Parameters
+    ----------
+    field : ndarray, shape (nk, nj, ni)
+        Image whose isosurface is taken (marching cubes, scikit-image; ``step_size`` voxels per cube).
+    smooth : ndarray, same shape
+        Smoothed image whose gradient gives the normals and which the profiles sample (linear interpolation).
+    level : float
+    spacing : ndarray, shape (3,)
+    reach_mm : float
+        Half-length of the profiles, mm, sampled every quarter of the finest voxel size.
+    step_size : int
+
+    Returns
+    -------
+    d : ndarray, shape (m,)
+        Distances (mm) along the normals, negative on the brighter side.
+    points : ndarray, shape (m, n, 3)
+        Sample positions (mm, (k, j, i)) of the n profiles.
+    outward : ndarray, shape (n, 3)
+        Unit normals, towards the darker side.
+    profiles : ndarray, shape (m, n)
+    """
+    verts, _, _, _ = marching_cubes(field, level, spacing=tuple(spacing), step_size=step_size, method="lewiner")
     grad = np.stack([ndimage.map_coordinates(g, (verts / spacing).T, order=1)
                      for g in np.gradient(smooth, *spacing)], axis=1)
     norm = np.linalg.norm(grad, axis=1)
     ok = norm > 0
     outward = -grad[ok] / norm[ok, None]
-    verts = verts[ok]
     d = np.linspace(-reach_mm, reach_mm, 4 * int(np.ceil(reach_mm / spacing.min())) + 1)
-    points = verts[None] + d[:, None, None] * outward[None]
-    profiles = ndimage.map_coordinates(smooth, (points.reshape(-1, 3) / spacing).T, order=1,
-                                       mode="nearest").reshape(len(d), -1)
-    clean = np.all(profiles[d <= -depth_mm] > level, axis=0) & np.all(profiles[d >= depth_mm] < level, axis=0)
-    if np.count_nonzero(clean) < min_points:
-        return None
-    raw = ndimage.map_coordinates(crop, (points[:, clean].reshape(-1, 3) / spacing).T, order=1,
-                                  mode="nearest").reshape(len(d), -1)
-    return step_width(d, np.median(raw, axis=1), float(spacing.min()))
+    points = verts[ok][None] + d[:, None, None] * outward[None]
+    return d, points, outward, sample(smooth, points, spacing)
+
+
+def sample(image: np.ndarray, points: np.ndarray, spacing: np.ndarray) -> np.ndarray:
+    """``image`` at ``points`` (mm, (k, j, i), shape (m, n, 3)) by linear interpolation, shape (m, n)."""
+    return ndimage.map_coordinates(image, (points.reshape(-1, 3) / spacing).T, order=1,
+                                   mode="nearest").reshape(points.shape[:2])
 
 
 def step_width(d: np.ndarray, profile: np.ndarray, start_mm: float) -> float | None:
@@ -387,23 +419,11 @@ def through_plane_variance(image: np.ndarray, box, ceiling: float, spacing_kji, 
     if levels is None:
         return None
     low, high = levels
-    level = 0.5 * (low + high)
-    verts, _, _, _ = marching_cubes(smooth, level, spacing=tuple(spacing), step_size=2, method="lewiner")
-    grad = np.stack([ndimage.map_coordinates(g, (verts / spacing).T, order=1)
-                     for g in np.gradient(smooth, *spacing)], axis=1)
-    norm = np.linalg.norm(grad, axis=1)
-    ok = norm > 0
-    outward = -grad[ok] / norm[ok, None]  # towards the darker tissue
-    verts = verts[ok]
-    d = np.linspace(-reach_mm, reach_mm, 4 * int(np.ceil(reach_mm / spacing.min())) + 1)
-    points = verts[None] + d[:, None, None] * outward[None]
-    profiles = ndimage.map_coordinates(smooth, (points.reshape(-1, 3) / spacing).T, order=1,
-                                       mode="nearest").reshape(len(d), -1)
+    d, points, outward, profiles = normal_profiles(smooth, smooth, 0.5 * (low + high), spacing, reach_mm, 2)
     tolerance = 0.25 * (high - low)
     clean = (np.all(np.abs(profiles[d <= -depth_mm] - high) < tolerance, axis=0)
              & np.all(np.abs(profiles[d >= depth_mm] - low) < tolerance, axis=0))
-    raw = ndimage.map_coordinates(crop, (points[:, clean].reshape(-1, 3) / spacing).T, order=1,
-                                  mode="nearest").reshape(len(d), -1)
+    raw = sample(crop, points[:, clean], spacing)
     tilt2 = outward[clean, 0] ** 2
     rows = []
     for lo, hi in zip(TILT_BINS[:-1], TILT_BINS[1:]):
@@ -417,7 +437,7 @@ def through_plane_variance(image: np.ndarray, box, ceiling: float, spacing_kji, 
     x, y, n = np.array(rows).T
     weight = np.sqrt(n)
     _, slope = np.linalg.lstsq(np.column_stack([np.ones_like(x), x]) * weight[:, None], y * weight, rcond=None)[0]
-    return max(float(slope) - (spacing[0] ** 2 - spacing.min() ** 2) / 6.0, 0.0)
+    return max(float(slope - (spacing[0] ** 2 - spacing.min() ** 2) / 6.0), 0.0)
 
 
 def tissue_levels(values: np.ndarray, bins: int = 200) -> tuple[float, float] | None:
