@@ -87,6 +87,11 @@ class IntensityModel:
         """Lumen minus background level."""
         return self.lumen - self.background
 
+    @property
+    def half_level(self) -> float:
+        """Half-way from the background to the lumen level: where a blurred wall lies."""
+        return self.background + 0.5 * self.contrast
+
     def window(self, low_margin: float, high_margin: float) -> tuple[float, float]:
         """Window ``(B - low_margin C, A + max(high_margin C, 3 spread))``: the lumen sits just below its top.
 

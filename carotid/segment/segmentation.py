@@ -362,8 +362,7 @@ def slice_thickness(volume: Volume, params: SegmentParameters, model: IntensityM
     if params.slice_thickness_mm > 0:
         return float(params.slice_thickness_mm), "parameter"
     if params.measure_slice_blur:
-        ceiling = model.background + 0.5 * (model.lumen - model.background)
-        variance = through_plane_variance(volume.array, model.box, ceiling, volume.spacing_kji)
+        variance = through_plane_variance(volume.array, model.box, model.half_level, volume.spacing_kji)
         if variance is not None:
             return float(np.sqrt(12.0 * variance + float(np.min(volume.spacing_kji)) ** 2)), "measured"
     if volume.slice_thickness is not None:
