@@ -12,7 +12,8 @@ from carotid.io import Volume
 from carotid.segment import SegmentParameters, calcium, deblur, segment, segmentation
 from carotid.segment.calcium import hyperdense_edge
 from carotid.segment.deblur import normal_background, refine
-from carotid.segment.intensity import edge_blur, local_level, through_plane_variance, wide_gaussian
+from carotid.segment.intensity import (edge_blur, local_level, local_linear_level, through_plane_variance,
+                                      wide_gaussian)
 
 B, A, P = 40.0, 300.0, 1000.0  # tissue, lumen and calcium levels (HU)
 FAT = -100.0
@@ -214,9 +215,41 @@ def test_the_lumen_level_is_read_on_a_core_with_the_blur_taken_out(monkeypatch):
              + np.random.default_rng(3).normal(0, 15, shape)).astype(np.float32)
     assert radius_of(refine(image, sdf, SPACING, A - 50.0, B, 0.8, level_mm=10.0)) == pytest.approx(2.0, abs=0.02)
     # Mutation: the core's plain mean.
-    monkeypatch.setattr(deblur, "lumen_level", lambda image, tissue, phi, core, spacing, blur, ramp, scale, default:
-                        local_level(image, core, spacing, scale, default))
+    monkeypatch.setattr(deblur, "lumen_level", lambda image, tissue, phi, core, spacing, blur, ramp, scale, default,
+                        linear: local_level(image, core, spacing, scale, default))
     assert radius_of(refine(image, sdf, SPACING, A - 50.0, B, 0.8, level_mm=10.0)) > 2.05
+
+
+def bulb_and_branch(fade_per_mm: float, spacing=np.array([0.5, 0.3, 0.3])):
+    """A 3.5 mm bulb (z < -6 mm) going on into a 1.5 mm branch along k, whose lumen level fades by
+    ``fade_per_mm`` HU per mm along the vessel, blurred by 0.6 mm, 10 HU noise.  Returns the image, the
+    spacing, the true signed distance, the true level and the k coordinates (mm)."""
+    shape = (64, 48, 48)
+    z, y, x = grid(shape, spacing)
+    sdf = (np.hypot(x, y) - np.where(z < -6.0, 3.5, 1.5)).astype(np.float32)
+    level = (A - fade_per_mm * (z - z.min())).astype(np.float32)
+    image = B + (level - B) * blurred(occupancy(sdf, spacing), 0.6, spacing)
+    image += np.random.default_rng(4).normal(0, 10, shape)
+    return image.astype(np.float32), spacing, sdf, level, z
+
+
+def test_the_followed_lumen_level_does_not_lean_towards_a_wider_bulb():
+    """The bolus fades by 1.5 HU/mm (0.6 % of the contrast) along a bulb and its 1.5 mm branch.  Near the bulb
+    the branch's few core voxels are outweighed by the bulb's many, so a local mean reads the branch's level
+    10-17 HU too bright and a refinement on it narrows the branch by 0.07 mm; the local linear fit follows the
+    fade, and the wall stays."""
+    image, spacing, sdf, level, z = bulb_and_branch(1.5)
+    core, near = sdf < -1.0, sdf < 1.0
+    branch = near & (z > -4.0)
+    fitted = local_linear_level(level, core, spacing, 10.0, A, near)
+    assert np.abs(fitted - level)[branch].max() < 1.0
+    assert np.abs(local_level(level, core, spacing, 10.0, A) - level)[branch].min() > 9.0
+    # Mutation: a ridge so strong the slope vanishes, i.e. the local mean.
+    assert np.abs(local_linear_level(level, core, spacing, 10.0, A, near, ridge=1e6) - level)[branch].min() > 9.0
+    # The middle section lies 6 mm into the branch.
+    linear = refine(image, sdf, spacing, A, B, 0.6, level_mm=10.0, linear_level=True)
+    assert radius_of(linear, spacing) == pytest.approx(1.5, abs=0.02)
+    assert radius_of(refine(image, sdf, spacing, A, B, 0.6, level_mm=10.0), spacing) < 1.5 - 0.05
 
 
 def throat_image(slices: int, h: float = 0.3, sigma: float = 0.6, length: float = 1.5, depth: float = 0.9,

@@ -40,11 +40,11 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from carotid.segment.intensity import local_level, region_box
+from carotid.segment.intensity import local_level, local_linear_level, region_box
 
 def refine(image: np.ndarray, phi: np.ndarray, spacing_kji, lumen: float, background: float, blur_mm: float,
            exclude: np.ndarray | None = None, iterations: int = 20, gain: float = 2.0, smooth_mm: float = 1.0,
-           normal: bool = True, level_mm: float = 0.0, slices: bool = True,
+           normal: bool = True, level_mm: float = 0.0, linear_level: bool = False, slices: bool = True,
            thickness_mm: float | None = None) -> np.ndarray:
     """Level set moved to the wall that best explains the image under a Gaussian blur.
 
@@ -76,6 +76,8 @@ def refine(image: np.ndarray, phi: np.ndarray, spacing_kji, lumen: float, backgr
     level_mm : float
         Scale (mm) over which the lumen level is followed along the vessel (``lumen_level``); 0: ``lumen``
         everywhere.
+    linear_level : bool
+        Follow it by a local linear fit (``intensity.local_linear_level``) instead of a local mean.
     slices : bool
         Blur each axis by ``axis_blur`` (the thicker voxels' boxcar added along their axis); False: by
         ``blur_mm`` along every axis.
@@ -112,7 +114,8 @@ def refine(image: np.ndarray, phi: np.ndarray, spacing_kji, lumen: float, backgr
     level = np.float32(lumen)
     if level_mm > 0:
         core = clear & (phi0 < -np.float32(max(2.0 * sigma_mm, float(spacing.max()))))
-        level = lumen_level(crop, tissue, phi0, core, spacing, sigma_axes, ramp, level_mm, lumen)
+        level = lumen_level(crop, tissue, phi0, core, spacing, sigma_axes, ramp, level_mm, lumen,
+                            (phi0 < band) if linear_level else None)
     contrast = np.maximum(level - tissue, np.float32(1e-6))
     out = phi0.copy()
     for _ in range(iterations):
@@ -189,7 +192,8 @@ def axis_blur(blur_mm: float, spacing_kji, thickness_mm: float | None = None) ->
 
 
 def lumen_level(image: np.ndarray, tissue: np.ndarray, phi: np.ndarray, core: np.ndarray, spacing,
-                blur_mm, ramp_mm: float, scale_mm: float, default: float) -> np.ndarray:
+                blur_mm, ramp_mm: float, scale_mm: float, default: float,
+                linear: np.ndarray | None = None) -> np.ndarray:
     """Lumen level ``A`` followed along the vessel, with the blur taken out of the core it is read on.
 
     Even two blur widths inside the wall the blur still mixes tissue into the lumen (2 % of the contrast at a
@@ -214,6 +218,9 @@ def lumen_level(image: np.ndarray, tissue: np.ndarray, phi: np.ndarray, core: np
         Scale of the Gaussian mean, mm.
     default : float
         Level where no core voxel lies within reach.
+    linear : ndarray of bool, same shape, optional
+        Voxels where the level is a local linear fit (``intensity.local_linear_level``) rather than a local
+        mean; None: nowhere.
 
     Returns
     -------
@@ -226,7 +233,10 @@ def lumen_level(image: np.ndarray, tissue: np.ndarray, phi: np.ndarray, core: np
     if not core.any():
         return np.full(phi.shape, default, np.float32)
     outside = ndimage.gaussian_filter(tissue * (1 - inside), sigma)
-    return local_level((image - outside) / np.maximum(fraction, np.float32(0.5)), core, spacing, scale_mm, default)
+    unblurred = (image - outside) / np.maximum(fraction, np.float32(0.5))
+    if linear is not None:
+        return local_linear_level(unblurred, core, spacing, scale_mm, default, linear)
+    return local_level(unblurred, core, spacing, scale_mm, default)
 
 
 def local_background(image: np.ndarray, phi: np.ndarray, spacing, blur_mm: float, exclude: np.ndarray | None,

@@ -527,6 +527,70 @@ def local_level(image: np.ndarray, core: np.ndarray, spacing_kji, sigma_mm: floa
     return (blend * level + (1 - blend) * np.float32(default)).astype(np.float32)
 
 
+def local_linear_level(image: np.ndarray, core: np.ndarray, spacing_kji, sigma_mm: float, default: float,
+                       where: np.ndarray, ridge: float = 0.02) -> np.ndarray:
+    """Lumen level followed along the vessel by a Gaussian-weighted local linear fit over ``core``.
+
+    ``local_level``'s weighted mean leans towards wherever the core is densest: near a stenosis the wider
+    bulb's many core voxels outweigh the throat's few, and where the bolus fades along the vessel that
+    puts the throat's level nearer the bulb's.  A local linear fit (kernel regression of order one) has no
+    such design bias to first order: at each voxel ``x0`` it fits ``a + g . (x - x0)`` to the core's
+    intensities with the Gaussian weights of ``local_level`` and returns ``a``.  Its weighted moments are
+    wide Gaussians (``wide_gaussian``) of the core's intensity and coordinates; the 3 x 3 normal equations
+    of the slope are solved voxel by voxel (batched).  A ridge of ``ridge * sigma_mm^2`` on the slope's
+    second moments keeps a direction the core does not span (across a vessel a few mm wide, where the
+    core's variance is ``R^2 / 4``) from extrapolating: the fit is linear only along the vessel.
+
+    Parameters
+    ----------
+    image : ndarray, shape (nk, nj, ni)
+    core : ndarray of bool, same shape
+        Voxels deep inside the lumen.
+    spacing_kji : array_like, shape (3,)
+    sigma_mm : float
+        Scale (mm) of the Gaussian weights.
+    default : float
+        Level where no core voxel lies within a few ``sigma_mm``.
+    where : ndarray of bool, same shape
+        Voxels at which the fit is made; elsewhere ``local_level``.
+    ridge : float
+        Ridge on the slope, in units of the weights' variance ``sigma_mm^2``.
+
+    Returns
+    -------
+    ndarray, float32, same shape
+    """
+    spacing = np.asarray(spacing_kji, float)
+    level = local_level(image, core, spacing, sigma_mm, default)
+    sigma = sigma_mm / spacing
+    weight = core.astype(np.float32)
+    values = np.where(core, image, 0).astype(np.float32)
+    # Coordinates (mm) from the array's centre keep the float32 moments well conditioned.
+    axes = [((np.arange(n, dtype=np.float32) - (n - 1) / 2) * np.float32(h)).reshape([-1 if a == b else 1
+                                                                                       for b in range(3)])
+            for a, (n, h) in enumerate(zip(core.shape, spacing))]
+    s0 = wide_gaussian(weight, sigma)
+    fit = where & (s0 > np.float32(1e-3))
+    index = np.nonzero(fit)
+    x = np.stack([np.broadcast_to(axes[a], core.shape)[index] for a in range(3)], axis=1).astype(np.float64)
+    s0 = s0[index].astype(np.float64)
+    t0 = wide_gaussian(values, sigma)[index].astype(np.float64)
+    s1 = np.stack([wide_gaussian(weight * axes[a], sigma)[index] for a in range(3)], axis=1).astype(np.float64)
+    t1 = np.stack([wide_gaussian(values * axes[a], sigma)[index] for a in range(3)], axis=1).astype(np.float64)
+    s2 = np.empty((len(s0), 3, 3))
+    for a in range(3):
+        for b in range(a, 3):
+            raw = wide_gaussian(weight * axes[a] * axes[b], sigma)[index]
+            s2[:, a, b] = s2[:, b, a] = raw - x[:, a] * s1[:, b] - x[:, b] * s1[:, a] + x[:, a] * x[:, b] * s0
+    s1 -= x * s0[:, None]  # moments about each voxel
+    t1 -= x * t0[:, None]
+    s2 += (ridge * sigma_mm ** 2) * s0[:, None, None] * np.eye(3)
+    u = np.linalg.solve(s2, s1[..., None])[..., 0]
+    v = np.linalg.solve(s2, t1[..., None])[..., 0]
+    level[index] = ((t0 - np.einsum("ij,ij->i", s1, v)) / (s0 - np.einsum("ij,ij->i", s1, u))).astype(np.float32)
+    return level
+
+
 def wide_gaussian(array: np.ndarray, sigma, voxels_per_step: float = 3.0) -> np.ndarray:
     """Gaussian filter (``mode="nearest"``) of a wide kernel, computed on a coarser grid.
 

@@ -101,6 +101,10 @@ class SegmentParameters:
         Blur that refinement's model along each axis by the measured blur plus the part of the voxel's
         boxcar beyond the finest axis's (``deblur.axis_blur``): thick slices blur a throat along the vessel
         more than within the slices.  False: the measured blur along every axis.
+    deblur_linear_level : bool
+        Follow that refinement's lumen level along the vessel by a local linear fit
+        (``intensity.local_linear_level``), which does not lean towards a stenosis's wider bulb, instead of a
+        local mean.
     slice_thickness_mm : float
         Slice thickness (mm) whose boxcar that model adds along the slice axis; 0: the thickness the scan
         records (``Volume.slice_thickness``: DICOM SliceThickness, a dcm2niix sidecar), else the slice
@@ -187,6 +191,7 @@ class SegmentParameters:
     deblur_gain: float = 2.0
     deblur_smooth_mm: float = 1.0
     deblur_slices: bool = True
+    deblur_linear_level: bool = False
     slice_thickness_mm: float = 0.0
     measure_slice_blur: bool = True
     handle_mm: float = 1.5
@@ -382,7 +387,8 @@ def deblur(image: np.ndarray, phi: np.ndarray, spacing_kji, model: IntensityMode
         exclude = dense if exclude is None else exclude | dense
     return refine(image, phi, spacing_kji, model.lumen, model.background, model.blur, exclude,
                   iterations=params.deblur_iterations, gain=params.deblur_gain, smooth_mm=params.deblur_smooth_mm,
-                  level_mm=params.level_mm, slices=params.deblur_slices, thickness_mm=thickness_mm)
+                  level_mm=params.level_mm, linear_level=params.deblur_linear_level, slices=params.deblur_slices,
+                  thickness_mm=thickness_mm)
 
 
 def lumen_levelset(phi: np.ndarray, stopped: np.ndarray | None, seeds_kji: np.ndarray | None, spacing_kji,
