@@ -22,6 +22,8 @@ intensity axis.  This module measures that on the image:
   is defined wherever some lumen lies within a few ``sigma_mm``.  Its wide
   Gaussian is computed on a coarser grid (``wide_gaussian``): scipy has no
   multiresolution Gaussian, and the direct one took a third of a 256^3 run.
+  ``local_linear_level`` fits a line instead of a mean with the same weights,
+  so that the level does not lean towards where the core is densest.
 
 * ``edge_blur`` measures the scanner's blur on the lumen's own edge: the
   width of a Gaussian step fitted to the median intensity profile across it.
@@ -538,8 +540,11 @@ def local_linear_level(image: np.ndarray, core: np.ndarray, spacing_kji, sigma_m
     intensities with the Gaussian weights of ``local_level`` and returns ``a``.  Its weighted moments are
     wide Gaussians (``wide_gaussian``) of the core's intensity and coordinates; the 3 x 3 normal equations
     of the slope are solved voxel by voxel (batched).  A ridge of ``ridge * sigma_mm^2`` on the slope's
-    second moments keeps a direction the core does not span (across a vessel a few mm wide, where the
-    core's variance is ``R^2 / 4``) from extrapolating: the fit is linear only along the vessel.
+    second moments keeps a direction the core does not span from extrapolating: across a vessel the core's
+    variance is ``R^2 / 4``, 2.25 mm^2 for a 3 mm core radius, and the default ridge is 2 mm^2 at
+    ``sigma_mm`` = 10, so the fit is linear along the vessel and nearly flat across it.  On a fade of 0.5 %
+    of the contrast per mm the ridge leaves a bias of at most 0.3 % of the contrast where a 4 mm bulb
+    narrows to a 1.2 mm branch (the mean: 7.5 %).
 
     Parameters
     ----------

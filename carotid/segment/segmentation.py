@@ -104,7 +104,8 @@ class SegmentParameters:
     deblur_linear_level : bool
         Follow that refinement's lumen level along the vessel by a local linear fit
         (``intensity.local_linear_level``), which does not lean towards a stenosis's wider bulb, instead of a
-        local mean.
+        local mean.  Off: under the refinement's early stop the leaning level holds a tight throat's wall in,
+        and the level without the lean leaves it wider (``benchmarks/README.md``).
     slice_thickness_mm : float
         Slice thickness (mm) whose boxcar that model adds along the slice axis; 0: the thickness the scan
         records (``Volume.slice_thickness``: DICOM SliceThickness, a dcm2niix sidecar), else the slice
