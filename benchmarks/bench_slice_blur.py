@@ -35,16 +35,14 @@ from _common import git_state, write_results
 from bench_segmentation import branch_seeds, log, non_negative
 from carotid.phantom import make_phantom
 from carotid.phantom.family import sample_family
-from carotid.segment.init import seed_levelset, seed_sample
 from carotid.segment.intensity import estimate_from_sample, through_plane_variance
-from carotid.segment.segmentation import SegmentParameters, lumen_sample
+from carotid.segment.segmentation import SegmentParameters, seed_start
 
 
 def intensity_model(phantom):
     """The intensity model ``segment`` estimates from the phantom's CCA, ICA and ECA seeds."""
-    volume, seeds = phantom.image, branch_seeds(phantom)
-    phi = seed_levelset(volume, seeds, SegmentParameters().seed_radius_mm)
-    sample = lumen_sample(volume.array, seed_sample(phi, volume.world_to_index(seeds)))
+    volume = phantom.image
+    _, _, sample = seed_start(volume, branch_seeds(phantom), SegmentParameters().seed_radius_mm)
     return estimate_from_sample(volume.array, sample, volume.spacing_kji, "seeds")
 
 

@@ -514,6 +514,15 @@ def lumen_sample(array: np.ndarray, region: np.ndarray) -> np.ndarray:
     return region & (array > threshold_otsu(values))
 
 
+def seed_start(volume: Volume, seeds_xyz: np.ndarray, radius_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Spheres of ``radius_mm`` at the seeds (world mm, shape (n, 3); validated first), the seeds' voxel
+    indices (n, 3) and the lumen sample the intensity model is estimated from (the bright part of the
+    spheres' seed voxels, ``lumen_sample``)."""
+    phi = seed_levelset(volume, seeds_xyz, radius_mm)
+    seeds_kji = volume.world_to_index(seeds_xyz)
+    return phi, seeds_kji, lumen_sample(volume.array, seed_sample(phi, seeds_kji))
+
+
 def keep_components(inside: np.ndarray, seeds_kji: np.ndarray | None, spacing_kji,
                     reach_mm: float = 5.0) -> np.ndarray:
     """The connected components holding a seed, or within ``reach_mm`` of it for a seed the front left (one
@@ -571,9 +580,7 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
     seeds_kji = None
     if seeds_xyz is not None and len(seeds_xyz):
         seeds_xyz = np.atleast_2d(np.asarray(seeds_xyz, float))
-        phi = seed_levelset(volume, seeds_xyz, params.seed_radius_mm)  # validates the seeds first
-        seeds_kji = volume.world_to_index(seeds_xyz)
-        sample = lumen_sample(volume.array, seed_sample(phi, seeds_kji))
+        phi, seeds_kji, sample = seed_start(volume, seeds_xyz, params.seed_radius_mm)
         how = "seed"
     elif init_mask is not None:
         if init_mask.shape != volume.array.shape:
