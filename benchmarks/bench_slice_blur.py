@@ -17,6 +17,12 @@ compares, as the model's blur along k (mm):
 * ``slices``: the default, ``sqrt(blur^2 + (h_k^2 - h_min^2) / 12)``;
 * ``measured``: ``sqrt(blur^2 + through_plane_variance)``, or no estimate.
 
+It also compares the in-plane blur ``edge_blur`` reads (``edge_blur_mm``)
+with the phantom's: its Gaussian and its partial-volume ramp (one mean voxel
+size wide) in quadrature, ``sqrt(sigma^2 + w^2 / 12)``; and the same for
+``edge_blur`` as it was before (``previous_edge_blur_mm``: edges located on
+the image smoothed by half a voxel, every tilt, linear interpolation).
+
 Usage (from the repository root)::
 
     .venv/bin/python benchmarks/bench_slice_blur.py [--first-seed F] [--cases N] [--repeat R]
@@ -35,7 +41,7 @@ from _common import git_state, write_results
 from bench_segmentation import branch_seeds, log, non_negative
 from carotid.phantom import make_phantom
 from carotid.phantom.family import sample_family
-from carotid.segment.intensity import estimate_from_sample, through_plane_variance
+from carotid.segment.intensity import edge_blur, estimate_from_sample, through_plane_variance
 from carotid.segment.segmentation import SegmentParameters, seed_start
 
 
@@ -60,14 +66,22 @@ def run_case(seed: int, repeat: int) -> dict:
     oracle = float(np.sqrt(model.blur ** 2 + blur["z"] ** 2 - blur["in_plane"] ** 2))
     slices = float(np.sqrt(model.blur ** 2 + (spacing[0] ** 2 - spacing.min() ** 2) / 12.0))
     measured = None if variance is None else float(np.sqrt(model.blur ** 2 + variance))
+    in_plane = float(np.hypot(blur["in_plane"], spacing.mean() / np.sqrt(12.0)))
+    previous = edge_blur(phantom.image.array, model.box, model.bright, model.half_level, spacing, locate_mm=None,
+                         max_tilt=1.0, order=1)
     case = {"seed": seed, "modality": phantom.info["modality"], "spacing_kji_mm": spacing.tolist(),
-            "true_blur_mm": blur, "edge_blur_mm": model.blur,
+            "true_blur_mm": blur, "edge_blur_mm": model.blur, "previous_edge_blur_mm": previous,
+            "true_in_plane_mm": in_plane,
+            "in_plane_relative_error": {"edge_blur": None if model.blur is None else model.blur / in_plane - 1.0,
+                                        "previous": None if previous is None else previous / in_plane - 1.0},
             "true_extra_variance_mm2": blur["z"] ** 2 - blur["in_plane"] ** 2, "measured_extra_variance_mm2": variance,
             "z_blur_mm": {"oracle": oracle, "slices": slices, "measured": measured},
             "relative_error": {"slices": slices / oracle - 1.0,
                                "measured": None if measured is None else measured / oracle - 1.0},
             "seconds": {"min": min(seconds), "median": float(np.median(seconds))}}
-    log(f"case {seed:2d} ({case['modality']}): oracle {oracle:.3f} mm, slices {slices:.3f} "
+    errors = {k: "-" if v is None else f"{v:+.1%}" for k, v in case["in_plane_relative_error"].items()}
+    log(f"case {seed:2d} ({case['modality']}): in plane {in_plane:.3f} mm, edge_blur {errors['edge_blur']}, "
+        f"previous {errors['previous']}; along k oracle {oracle:.3f} mm, slices {slices:.3f} "
         f"({case['relative_error']['slices']:+.1%}), measured "
         + ("-" if measured is None else f"{measured:.3f} ({case['relative_error']['measured']:+.1%})"))
     return case
@@ -89,6 +103,15 @@ def summarise(cases: list[dict]) -> dict:
                 "worst": None if worst is None else float(errors[worst]),
                 "range": [float(errors.min()), float(errors.max())] if errors.size else None,
                 "no_estimate": [c["seed"] for c in mine if c["relative_error"][name] is None]}
+    for name in ("edge_blur", "previous"):
+        errors = np.array([c["in_plane_relative_error"][name] for c in cases
+                           if c["in_plane_relative_error"][name] is not None])
+        out[f"in_plane_{name}"] = {"median": float(np.median(errors)),
+                                   "median_abs": float(np.median(np.abs(errors))),
+                                   "within_5_percent": int(np.count_nonzero(np.abs(errors) <= 0.05)),
+                                   "range": [float(errors.min()), float(errors.max())],
+                                   "no_estimate": [c["seed"] for c in cases
+                                                   if c["in_plane_relative_error"][name] is None]}
     times = np.array([c["seconds"]["min"] for c in cases])
     out["seconds"] = {"min": float(times.min()), "median": float(np.median(times)), "max": float(times.max())}
     return out
