@@ -76,6 +76,12 @@ def _from_grid_mm(volume: Volume, grid_xyz: np.ndarray) -> np.ndarray:
     return volume.index_to_world(ijk[..., ::-1])
 
 
+def _fixed(values: np.ndarray) -> list[str]:
+    """Coordinates (mm) as command-line arguments in fixed notation: argparse takes ``-3.6e-05`` for an
+    option, not a negative number."""
+    return [f"{v:.9f}" for v in np.asarray(values, float).ravel()]
+
+
 def _run_peer(args: list[str]) -> dict:
     """Run ``vmtk_peer.py`` with ``args``; its JSON line, or ``{"error": last stderr line}``."""
     try:
@@ -173,9 +179,9 @@ def run_vmtk_centerlines(levelset_array: np.ndarray, volume: Volume, source_xyz,
     with tempfile.TemporaryDirectory(prefix="carotid-vmtk-") as folder:
         image, out = Path(folder) / "levelset.mha", Path(folder) / "centerlines.vtp"
         write_image(_grid(volume, levelset_array), image, compress=False)
-        args = ["centerlines", "--levelset", str(image), "--source", *map(repr, source.tolist()), "--out", str(out)]
+        args = ["centerlines", "--levelset", str(image), "--source", *_fixed(source), "--out", str(out)]
         for target in targets:
-            args += ["--target", *map(repr, target.tolist())]
+            args += ["--target", *_fixed(target)]
         start = time.perf_counter()
         result = _run_peer(args)
         wall = time.perf_counter() - start
