@@ -87,31 +87,31 @@ def run_case(seed: int, repeat: int) -> dict:
     return case
 
 
+def error_summary(cases: list[dict], errors_of) -> dict:
+    """Median, median absolute, worst and range of the relative errors ``errors_of(case)`` (None: no
+    estimate) over ``cases``, the count within 5 %, and the cases without an estimate."""
+    errors = np.array([errors_of(c) for c in cases if errors_of(c) is not None])
+    if not errors.size:
+        return {"median": None, "median_abs": None, "worst": None, "within_5_percent": 0, "range": None,
+                "no_estimate": [c["seed"] for c in cases]}
+    return {"median": float(np.median(errors)), "median_abs": float(np.median(np.abs(errors))),
+            "worst": float(errors[np.argmax(np.abs(errors))]),
+            "within_5_percent": int(np.count_nonzero(np.abs(errors) <= 0.05)),
+            "range": [float(errors.min()), float(errors.max())],
+            "no_estimate": [c["seed"] for c in cases if errors_of(c) is None]}
+
+
 def summarise(cases: list[dict]) -> dict:
-    """Per modality and estimate: median and worst relative error of the blur along k, and the cases without
-    an estimate."""
+    """Per modality, the relative error of the blur along k of each estimate; over all cases, that of the
+    in-plane blur (``edge_blur`` and the previous estimator); the measurement's time."""
     out = {}
     for modality in sorted({c["modality"] for c in cases}):
         mine = [c for c in cases if c["modality"] == modality]
         out[modality] = {"cases": len(mine)}
         for name in ("slices", "measured"):
-            errors = np.array([c["relative_error"][name] for c in mine if c["relative_error"][name] is not None])
-            worst = int(np.argmax(np.abs(errors))) if errors.size else None
-            out[modality][name] = {
-                "median": float(np.median(errors)) if errors.size else None,
-                "median_abs": float(np.median(np.abs(errors))) if errors.size else None,
-                "worst": None if worst is None else float(errors[worst]),
-                "range": [float(errors.min()), float(errors.max())] if errors.size else None,
-                "no_estimate": [c["seed"] for c in mine if c["relative_error"][name] is None]}
+            out[modality][name] = error_summary(mine, lambda c, name=name: c["relative_error"][name])
     for name in ("edge_blur", "previous"):
-        errors = np.array([c["in_plane_relative_error"][name] for c in cases
-                           if c["in_plane_relative_error"][name] is not None])
-        out[f"in_plane_{name}"] = {"median": float(np.median(errors)),
-                                   "median_abs": float(np.median(np.abs(errors))),
-                                   "within_5_percent": int(np.count_nonzero(np.abs(errors) <= 0.05)),
-                                   "range": [float(errors.min()), float(errors.max())],
-                                   "no_estimate": [c["seed"] for c in cases
-                                                   if c["in_plane_relative_error"][name] is None]}
+        out[f"in_plane_{name}"] = error_summary(cases, lambda c, name=name: c["in_plane_relative_error"][name])
     times = np.array([c["seconds"]["min"] for c in cases])
     out["seconds"] = {"min": float(times.min()), "median": float(np.median(times)), "max": float(times.max())}
     return out

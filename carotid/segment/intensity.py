@@ -282,7 +282,7 @@ def edge_blur(image: np.ndarray, box, bright: np.ndarray, level: float, spacing_
       by 6 % below it);
     * only edges facing within the slices (``|n_k| <= max_tilt``) are used: an edge tilted out of them is
       blurred by the slice profile too (``through_plane_variance``), which ``deblur.axis_blur`` adds along k
-      (up to 5 % wider where the lumen runs across the slices);
+      (5-7 % wider on the phantoms whose lumen runs across the slices);
     * the profiles are sampled by cubic spline interpolation: linear interpolation is itself a blur and
       widens them by about 5 % in 0.4-0.5 mm voxels.
 
