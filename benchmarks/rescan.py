@@ -20,11 +20,12 @@ same anatomy are ``bench_segmentation``'s; this splits carotid's own error.
 Usage (from the repository root)::
 
     .venv/bin/python benchmarks/rescan.py [--first-seed F] [--cases N] [--draws K] [--jobs J]
-        [--variant NAME=VALUE[,NAME=VALUE...]] [--name NAME]
+        [--variant NAME=VALUE[,NAME=VALUE...]] [--modality ct|mr|tof] [--name NAME]
 
 Writes ``results/rescan.json`` (19 minutes for 30 cases of 6 draws with ``--jobs 2``), or with
 ``--variant`` (carotid with those ``SegmentParameters`` overrides) ``results/rescan_variant.json``;
-``--name`` names another.
+``--name`` names another.  ``--modality`` scans every case's anatomy in one modality
+(``sample_family(seed, modality)``; ``tof``, time-of-flight MRA, is never drawn otherwise).
 """
 
 from __future__ import annotations
@@ -44,10 +45,10 @@ from carotid.segment import SegmentParameters
 FIGURES = ("nascet_error_points", "min_diameter_error_mm")
 
 
-def run_case(seed: int, draws: int, overrides: dict) -> dict:
-    """carotid (``SegmentParameters(**overrides)``) on ``draws`` scans of family case ``seed``: its own noise,
-    then noise seeds 1, 2, ..."""
-    kwargs = sample_family(seed)
+def run_case(seed: int, draws: int, overrides: dict, modality: str | None = None) -> dict:
+    """carotid (``SegmentParameters(**overrides)``) on ``draws`` scans of family case ``seed`` (in ``modality``,
+    None: the drawn one): its own noise, then noise seeds 1, 2, ..."""
+    kwargs = sample_family(seed, modality)
     case = {"seed": seed, "modality": kwargs["modality"], "noise": kwargs["noise"], "draws": []}
     truth = None
     for draw in range(draws):
@@ -119,6 +120,8 @@ def main() -> None:
     parser.add_argument("--jobs", type=non_negative(int), default=1)
     parser.add_argument("--variant", type=parse_variant, default={}, metavar="NAME=VALUE[,NAME=VALUE...]",
                         help="SegmentParameters overrides in place of the defaults")
+    parser.add_argument("--modality", choices=("ct", "mr", "tof"), default=None,
+                        help="scan every case in this modality (default: the family's draw)")
     parser.add_argument("--name", default=None,
                         help="results file (default rescan, with --variant rescan_variant)")
     options = parser.parse_args()
@@ -127,7 +130,8 @@ def main() -> None:
     git = git_state()
     seeds = range(options.first_seed, options.first_seed + options.cases)
     with Pool(max(options.jobs, 1)) as pool:
-        cases = pool.starmap(run_case, [(seed, options.draws, options.variant) for seed in seeds], chunksize=1)
+        cases = pool.starmap(run_case, [(seed, options.draws, options.variant, options.modality) for seed in seeds],
+                             chunksize=1)
     summary = summarise(cases)
     for key, entry in summary.items():
         log(f"summary {key}: every draw {entry['every_draw']}, some {entry['some_draws']}, none {entry['no_draw']}; "
@@ -135,7 +139,7 @@ def main() -> None:
     name = options.name or ("rescan_variant" if options.variant else "rescan")
     write_results(name, {
         "git": git, "family_seeds": f"range({seeds.start}, {seeds.stop})", "draws": options.draws,
-        "overrides": options.variant, "cases": cases, "summary": summary})
+        "overrides": options.variant, "modality": options.modality, "cases": cases, "summary": summary})
 
 
 if __name__ == "__main__":

@@ -306,11 +306,13 @@ def build_parser() -> argparse.ArgumentParser:
     family.add_argument("--blur-sigma", type=float, metavar="MM",
                         help="scanner blur standard deviation in plane (family 0.4-0.8; default 1 mm FWHM)")
     family.add_argument("--arterial-hu", type=float, metavar="LEVEL",
-                        help="proximal lumen level: HU in CT (family 250-600), MR units in MR (1200-2500)")
+                        help="proximal lumen level: HU in CT (family 250-600), MR units in MR (1200-2500; "
+                             "time-of-flight 400-1000)")
     family.add_argument("--bolus-fade", type=float, metavar="F",
                         help="fraction of the arterial enhancement lost from proximal CCA to distal ICA (family 0-0.3)")
     family.add_argument("--ica-shape", choices=("smooth", "kink", "loop"), help="ICA course distal to the stenosis")
-    family.add_argument("--modality", choices=("ct", "mr"), help="CT angiogram (HU) or contrast-enhanced MRA")
+    family.add_argument("--modality", choices=("ct", "mr", "tof"),
+                        help="CT angiogram (HU), contrast-enhanced MRA or time-of-flight MRA")
     family.add_argument("--bias", type=float, metavar="A", help="MR bias field amplitude, 0..1 (default 0.3 in MR)")
     p.set_defaults(func=cmd_phantom)
 

@@ -281,6 +281,34 @@ def test_mr_mode_is_not_hu_and_has_a_bias_field():
     assert np.abs(level_biased / level_flat - 1).max() > 0.12
 
 
+def test_time_of_flight_mode_saturates_the_tissues_and_keeps_the_anatomy():
+    """Time-of-flight MRA: muscle at 10-20 % of the inflowing blood, fat at 25-45 %, calcium and cortical bone
+    void, a bias field; the anatomy and the other draws of a family case stay those of its CT or MR scan."""
+    kwargs = sample_family(7, modality="tof")
+    assert kwargs["modality"] == "tof" and 400 <= kwargs["arterial_hu"] <= 1000 and "calcium_hu" not in kwargs
+    for key in ("stenosis", "vein_gap_mm", "venous_fraction", "plaque_size", "ica_shape", "bolus_fade"):
+        assert kwargs[key] == sample_family(7)[key] == sample_family(7, modality="mr")[key], key
+    kwargs.update(spacing=(0.6, 0.6, 0.8), noise=5.0, bias=0.0, plaque_size=1.5)
+    p = family_phantom(**kwargs)
+    assert p.info["modality"] == "tof" and p.info["levels"]["units"] == "MR arbitrary units"
+    img, labels, sdf = p.image.array, p.labels.array, p.sdf.array
+    arterial = p.info["levels"]["arterial_proximal"]
+    muscle = np.median(img[ndimage.binary_erosion(labels == LABELS["background"], iterations=3)])
+    fat = np.median(img[ndimage.binary_erosion(labels == LABELS["fat"], iterations=2)])
+    assert 0.1 * arterial * 0.9 < muscle < 0.2 * arterial * 1.1
+    assert 0.25 * arterial * 0.9 < fat < 0.45 * arterial * 1.1 and fat > 1.2 * muscle
+    lumen = np.median(img[sdf < -1.0])
+    assert muscle < fat < lumen <= arterial * 1.05
+    centre = np.round(p.image.world_to_index(np.array(p.info["calcium_centre_mm"]))).astype(int)
+    assert img[tuple(centre)] < 0.5 * muscle
+    # never drawn, only forced; an MR draw of the same case is contrast-enhanced
+    assert all(sample_family(s)["modality"] in ("ct", "mr") for s in range(60))
+    with pytest.raises(CarotidError, match="modality"):
+        sample_family(3, modality="pet")
+    with pytest.raises(CarotidError, match="calcium"):
+        make_phantom(modality="tof", calcium_hu=800, extent=(20, 20, 40))
+
+
 @pytest.mark.parametrize("shape,seed", [("kink", 5), ("loop", 6), ("kink", 21), ("loop", 8)])
 def test_kink_and_loop_stay_in_view_and_connected(shape, seed):
     p = family_phantom(ica_shape=shape, seed=seed, spacing=(0.6, 0.6, 0.6))
@@ -402,6 +430,10 @@ def test_cli_phantom(tmp_path, capsys):
     assert abs(info["vein"]["min_gap_to_lumen_mm"] - 0.4) < 0.01
     assert main(["phantom", str(tmp_path / "n"), "--nascet", "0.5", "--extent", "24", "24", "50"]) == 0
     assert "NASCET 50%" in capsys.readouterr().out
+    assert main(["phantom", str(tmp_path / "t"), "--family", "--seed", "3", "--modality", "tof",
+                 "--spacing", "0.8", "0.8", "0.8"]) == 0
+    assert capsys.readouterr().out.startswith(f"phantom written to {tmp_path / 't'} (TOF")
+    assert json.loads((tmp_path / "t" / "phantom.json").read_text())["parameters"]["modality"] == "tof"
     for argv in (["--spacing", "0", "0.5", "0.5"], ["--vein-gap", "-1"], ["--venous-fraction", "1"],
                  ["--nascet", "0.99"], ["--stenosis", "0.97"], ["--modality", "mr", "--calcium-hu", "500"],
                  ["--noise-seed", "-1"]):

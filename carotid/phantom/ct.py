@@ -23,15 +23,21 @@ that follows the CCA, bulb and proximal ICA at a chosen minimal gap (down to a f
 voxel; the gap is smallest at a random height and grows by 0.01-0.05 mm per mm away from it),
 venous and arterial levels, bolus fade, plaque size, position and density, scanner blur, kinked or
 coiled ICAs, fat lobules (-110 to -70 HU in CT, brighter than muscle in MR; label 5), and
-contrast-enhanced MR angiography (no HU: bright lumen, dark calcium and cortical bone, bias field,
-Rician noise).  A family keyword left at None takes the value the legacy model would use (e.g.
+MR angiography (no HU: bright lumen, dark calcium and cortical bone, bias field, Rician noise), either
+contrast-enhanced or time-of-flight.  In 3D time-of-flight MRA the repeated excitations saturate the
+stationary tissue: muscle keeps 10-20 % of the inflowing blood's signal and fat, by its short T1, 25-45 %;
+the blood loses signal as its spins saturate on their way through the slab (the bolus fade stands for
+that).  Veins stay as bright as the family draws them (no
+saturation band, the harder case); the flow artefacts of time-of-flight (signal loss in the slow flow of the
+bulb and in the jet beyond a tight stenosis, which make it overgrade) are left out, since the truth is the
+geometry.  A family keyword left at None takes the value the legacy model would use (e.g.
 the legacy gap of 1-2 mm, 1000 HU calcium, a 1 mm FWHM blur).
 
 The truth is analytic in both: the lumen is a union of spheres along the branch axes minus the
 calcium, so the mask and the signed distance are exact at the voxel centres.
 
-Images are float32 in memory with integer values: HU in CT; unitless signal (about 200-350 in
-muscle, 1200-2500 in the lumen) in MR.  :func:`write_phantom` stores both as int16.
+Images are float32 in memory with integer values: HU in CT; unitless signal in MR (about 200-350 in
+muscle and 1200-2500 in the lumen in contrast-enhanced MRA, 40-200 and 400-1000 in time-of-flight).  :func:`write_phantom` stores both as int16.
 """
 
 from __future__ import annotations
@@ -58,10 +64,14 @@ MARROW_HU = 280.0
 CALCIUM_HU = 1000.0            # the legacy plaque
 MAX_STENOSIS = 0.95            # largest area reduction
 ICA_SHAPES = ("smooth", "kink", "loop")
-MODALITIES = ("ct", "mr")
-MR_TISSUE = (200.0, 350.0)     # muscle signal, MR units
+MODALITIES = ("ct", "mr", "tof")
+MR_TISSUE = (200.0, 350.0)     # muscle signal, MR units (contrast-enhanced MRA)
+MR_FAT_RATIO = (1.5, 2.2)      # fat over muscle signal
 MR_ARTERIAL = (1200.0, 2500.0)  # proximal lumen signal, MR units
 MR_BIAS = 0.3                  # default bias amplitude in MR
+TOF_ARTERIAL = (400.0, 1000.0)  # time-of-flight MRA: inflowing blood, proximal, MR units
+TOF_TISSUE = (0.1, 0.2)        # saturated muscle, as a fraction of the proximal arterial level
+TOF_FAT = (0.25, 0.45)         # fat (short T1, less saturated), as a fraction of the proximal arterial level
 MAX_VOXELS = 100_000_000
 # Keywords that select the family model (``nascet`` does not: it only restates the stenosis).
 FAMILY_KEYWORDS = ("vein_gap_mm", "venous_fraction", "plaque_size", "plaque_angle_deg", "plaque_offset_mm",
@@ -417,6 +427,11 @@ def _legacy_vein(draws: _Draws, r_cca: float, arteries: list[Branch], extent_z: 
 
 # ------------------------------------------------------------------------------------ parameters
 
+def rescale(value: float, source: tuple[float, float], target: tuple[float, float]) -> float:
+    """``value`` moved from the range ``source`` to the same relative place in ``target``."""
+    return target[0] + (value - source[0]) / (source[1] - source[0]) * (target[1] - target[0])
+
+
 def _number(name: str, value, low: float | None = None, high: float | None = None, low_open: bool = False,
             high_open: bool = False) -> float | None:
     """``value`` as a float checked against [low, high] (open ends on request), or None."""
@@ -494,7 +509,7 @@ def make_phantom(stenosis: float | None = None, noise: float | None = None, seed
                  modality: str | None = None,
                  bias: float | None = None,
                  noise_seed: int | None = None) -> Phantom:
-    """Generate a carotid angiogram phantom (CTA or contrast-enhanced MRA) with its ground truth.
+    """Generate a carotid angiogram phantom (CTA, contrast-enhanced or time-of-flight MRA) with its ground truth.
 
     With none of the keyword-only family parameters (``nascet`` excepted) the legacy model is used
     and ``make_phantom(stenosis, noise, seed, spacing, extent, blur_fwhm)`` returns exactly the
@@ -551,7 +566,8 @@ def make_phantom(stenosis: float | None = None, noise: float | None = None, seed
         most one of ``blur_fwhm`` and ``blur_sigma_mm``.
     arterial_hu : float, optional
         Family: proximal arterial lumen level in the image's units: HU in CT, (90, 1500]; MR
-        units in MR, (400, 10000] (default drawn from 1200-2500).
+        units in MR, (400, 10000] (default drawn from 1200-2500); in time-of-flight (100, 10000]
+        (default drawn from 400-1000), and the tissues' levels are fractions of it.
     bolus_fade : float, optional
         Family: fraction of the arterial enhancement above tissue lost from the proximal CCA
         (z = 10 mm) to the distal ICA (z = extent - 10 mm), [0, 1).
@@ -559,13 +575,15 @@ def make_phantom(stenosis: float | None = None, noise: float | None = None, seed
         Family: "kink" adds a sharp bend of 60-100 degrees distal to the stenosis (and a gentler
         one back), "loop" a full helical coil; both stay in the field of view, clear of the other
         vessels, the vertebra, the plaque and themselves, and keep the radius model.
-    modality : {"ct", "mr"}, optional
-        Family: "ct" (HU) or "mr" (contrast-enhanced MR angiography: muscle 200-350, fat brighter,
-        lumen 1200-2500, cortical bone and calcium dark, multiplicative bias field, Rician noise).
+    modality : {"ct", "mr", "tof"}, optional
+        Family: "ct" (HU), "mr" (contrast-enhanced MR angiography: muscle 200-350, fat 1.5-2.2 times
+        brighter, lumen 1200-2500, cortical bone and calcium dark, multiplicative bias field, Rician
+        noise) or "tof" (time-of-flight MR angiography: as "mr", with inflowing blood 400-1000 and the
+        saturated muscle at 10-20 % of it, fat at 25-45 %; see the module's docstring).
     bias : float, optional
         Family: amplitude of the smooth random multiplicative bias field (a polynomial of degree
-        <= 2 spanning 1 - bias to 1 + bias over the field of view), [0, 1); default 0.3 in MR, and
-        it must be 0 in CT.
+        <= 2 spanning 1 - bias to 1 + bias over the field of view), [0, 1); default 0.3 in MR (either
+        kind), and it must be 0 in CT.
 
     Returns
     -------
@@ -606,7 +624,8 @@ def make_phantom(stenosis: float | None = None, noise: float | None = None, seed
     modality = "ct" if modality is None else str(modality).lower()
     if modality not in MODALITIES:
         raise CarotidError(f"modality {modality!r} must be one of {', '.join(MODALITIES)}")
-    mr = modality == "mr"
+    mr = modality in ("mr", "tof")  # magnitude images: bias field, Rician noise, calcium a signal void
+    tof = modality == "tof"
     shape_kind = "smooth" if ica_shape is None else str(ica_shape).lower()
     if shape_kind not in ICA_SHAPES:
         raise CarotidError(f"ica_shape {ica_shape!r} must be one of {', '.join(ICA_SHAPES)}")
@@ -618,7 +637,8 @@ def make_phantom(stenosis: float | None = None, noise: float | None = None, seed
     if calcium_hu is not None and mr:
         raise CarotidError("calcium_hu applies to CT only: in MR calcium is a signal void")
     calcium_v = _number("calcium (HU)", calcium_hu, TISSUE_HU, 3000.0, low_open=True)
-    arterial_v = (_number("arterial level (MR units)", arterial_hu, 400.0, 10000.0, low_open=True) if mr else
+    arterial_v = (_number("arterial level (MR units)", arterial_hu, 100.0 if tof else 400.0, 10000.0,
+                          low_open=True) if mr else
                   _number("arterial level (HU)", arterial_hu, TISSUE_HU + 50.0, 1500.0, low_open=True))
     fade_v = _number("bolus fade", bolus_fade, 0.0, 1.0, high_open=True)
     bias_v = _number("bias", bias, 0.0, 1.0, high_open=True)
@@ -730,9 +750,13 @@ def make_phantom(stenosis: float | None = None, noise: float | None = None, seed
         calcium_level = CALCIUM_HU
     else:
         level_rng = np.random.default_rng([seed, 3])
-        tissue_mr, fat_ratio, arterial_mr = (level_rng.uniform(*MR_TISSUE), level_rng.uniform(1.5, 2.2),
+        tissue_mr, fat_ratio, arterial_mr = (level_rng.uniform(*MR_TISSUE), level_rng.uniform(*MR_FAT_RATIO),
                                              level_rng.uniform(*MR_ARTERIAL))
         fat_ct = level_rng.uniform(-110.0, -70.0)
+        if tof:  # the same draws, placed in the time-of-flight ranges (tissues relative to the inflow)
+            arterial_mr = arterial_v if arterial_v is not None else rescale(arterial_mr, MR_ARTERIAL, TOF_ARTERIAL)
+            muscle, fat_fraction = rescale(tissue_mr, MR_TISSUE, TOF_TISSUE), rescale(fat_ratio, MR_FAT_RATIO, TOF_FAT)
+            tissue_mr, fat_ratio = arterial_mr * muscle, fat_fraction / muscle
         if mr:
             tissue = tissue_mr
             fat = tissue * fat_ratio

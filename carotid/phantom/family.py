@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from carotid.phantom.ct import MODALITIES, TOF_ARTERIAL, TOF_TISSUE, rescale
+
 # The ranges of :func:`sample_family` (units in the keys' names or in its docstring).
 FAMILY_RANGES = {
     "stenosis": (0.3, 0.9),                 # ICA area reduction
@@ -53,14 +55,16 @@ def sample_family(seed: int, modality: str | None = None) -> dict:
       ICA;
     * ``ica_shape``: smooth 60 %, kink 20 %, loop 20 %;
     * ``modality``: "mr" in 20 % of the cases when ``modality`` is None, else as given; MR adds a
-      ``bias`` field of amplitude 0.15-0.4.
+      ``bias`` field of amplitude 0.15-0.4.  "tof" (time-of-flight MRA) is never drawn, only forced:
+      the MR draws are placed in its ranges (``arterial_hu`` 400-1000 units, muscle at 10-20 % of
+      it; the noise at the same contrast-to-noise ratio as the CT draw, against the muscle).
 
     Parameters
     ----------
     seed : int
         Seed of the draw (>= 0); it is also the phantom's own ``seed``.
-    modality : {"ct", "mr"} or None
-        Force the modality; None draws it.
+    modality : {"ct", "mr", "tof"} or None
+        Force the modality; None draws it (CT or contrast-enhanced MR).
 
     Returns
     -------
@@ -72,8 +76,8 @@ def sample_family(seed: int, modality: str | None = None) -> dict:
 
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise CarotidError(f"seed {seed!r} must be a non-negative integer")
-    if modality is not None and modality not in ("ct", "mr"):
-        raise CarotidError(f"modality {modality!r} must be ct, mr or None")
+    if modality is not None and modality not in MODALITIES:
+        raise CarotidError(f"modality {modality!r} must be ct, mr, tof or None")
     R = FAMILY_RANGES
     rng = np.random.default_rng([int(seed), 1000])
     u = lambda key: float(rng.uniform(*R[key]))  # noqa: E731
@@ -94,21 +98,26 @@ def sample_family(seed: int, modality: str | None = None) -> dict:
     shape = shapes[int(rng.choice(len(shapes), p=list(R["ica_shape"].values())))]
     drawn_mr = rng.uniform() < R["mr_probability"]
     bias = u("bias")
-    mr = drawn_mr if modality is None else modality == "mr"
+    mr = drawn_mr if modality is None else modality in ("mr", "tof")
+    tof = modality == "tof"
 
     kwargs = {
         "stenosis": round(stenosis, 4), "seed": int(seed),
         "spacing": [round(in_plane, 3), round(in_plane, 3), round(slice_z, 3)],
         "blur_sigma_mm": round(blur, 3), "vein_gap_mm": round(gap, 3), "venous_fraction": round(venous, 3),
         "plaque_size": 0.0 if no_calcium else round(size, 3), "bolus_fade": round(fade, 3), "ica_shape": shape,
-        "modality": "mr" if mr else "ct",
+        "modality": modality or ("mr" if mr else "ct"),
     }
     if not no_calcium:
         kwargs["plaque_angle_deg"] = round(angle, 1)
         kwargs["plaque_offset_mm"] = round(offset, 2)
     if mr:
-        kwargs["arterial_hu"] = round(arterial_mr, 1)
-        kwargs["noise"] = round(noise_ct / (arterial_ct - 40.0) * (arterial_mr - MR_TISSUE_NOMINAL), 1)
+        arterial, tissue = arterial_mr, MR_TISSUE_NOMINAL
+        if tof:
+            arterial = rescale(arterial_mr, R["arterial_mr"], TOF_ARTERIAL)
+            tissue = arterial * float(np.mean(TOF_TISSUE))
+        kwargs["arterial_hu"] = round(arterial, 1)
+        kwargs["noise"] = round(noise_ct / (arterial_ct - 40.0) * (arterial - tissue), 1)
         kwargs["bias"] = round(bias, 3)
     else:
         kwargs["arterial_hu"] = round(arterial_ct, 1)
