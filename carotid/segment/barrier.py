@@ -8,13 +8,13 @@ the force is set to push the front out, keep it in the lumen:
 
 * ``half_level_barrier``: a blurred wall lies where the intensity has fallen
   half-way from the lumen to its surroundings, so a voxel below half of the
-  brightest value within a lumen radius is not lumen.  The threshold follows
-  that local maximum, so a tight stenosis dimmed by the blur keeps its own half
-  level, and a fading bolus or an MR bias field does not move it.  It holds a
-  gap that dips below half, in both stages of the evolution: the refining
-  stage's short kernel, blended with the half-maximum force, would otherwise
-  cross a gap one voxel thick, and a tight stenosis's throat would drift out
-  past its own half level.
+  brightest value within 3 mm is not lumen.  The threshold follows that local
+  maximum, so a fading bolus or an MR bias field does not move it, and a dimmer
+  structure touching the lumen (fat in a time-of-flight MRA) is held over about
+  2 mm beyond the blurred wall.  It acts in the capture stage, where it holds a
+  gap that dips below half; there a short, tight throat dimmed by the blur may
+  fall under half of the wider lumen within reach, which only narrows the
+  captured front: the refining stage, without it, takes the throat's wall back.
 * ``under_enhanced`` and ``competing_region``: a wide region (a plateau) that
   stays below 80 % of the brightest lumen nearby is a neighbour with less
   contrast, however thin and blurred the gap to it.  Its core is found by a
@@ -44,7 +44,7 @@ from carotid.segment.preprocess import gaussian_filter, maximum_filter
 
 
 def half_level_barrier(contrast: np.ndarray, spacing_kji, fraction: float = 0.5, sigma_mm: float = 0.3,
-                       reach_mm: float = 1.5) -> np.ndarray:
+                       reach_mm: float = 3.0) -> np.ndarray:
     """Voxels darker than ``fraction`` of the brightest lumen-like value around them.
 
     Parameters
@@ -59,8 +59,9 @@ def half_level_barrier(contrast: np.ndarray, spacing_kji, fraction: float = 0.5,
     sigma_mm : float
         Gaussian smoothing (mm) against noise, at least half a voxel.
     reach_mm : float
-        Half-width (mm) of the box in which the local maximum is taken: about a
-        lumen radius in a tight stenosis and the width of a gap.
+        Half-width (mm) of the box in which the local maximum is taken.  The barrier
+        reaches this far from the lumen into a dimmer structure touching it, less the
+        blurred wall's width: about 2 mm at 3 mm.
 
     Returns
     -------

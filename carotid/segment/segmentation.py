@@ -68,7 +68,11 @@ class SegmentParameters:
         blur-model refinement, a barrier there too left the minimal diameter of 11 of 30 family cases beyond
         0.25 mm against 8 without it (``benchmarks/README.md``).  0: off (the paper's GPF alone).
     barrier_reach_mm : float
-        Half-width (mm) of the neighbourhood of that local maximum.
+        Half-width (mm) of the neighbourhood of that local maximum.  Further from the lumen, a structure under
+        half the lumen's level that touches it (fat in a time-of-flight MRA, at a quarter to a half of the
+        blood's level) is compared with its own brightness and holds no barrier: at 3 mm the barrier is about
+        2 mm thick beyond the blurred wall; at 1.5 mm it was half a millimetre, which the noise opened on 3 of
+        30 family anatomies scanned as time-of-flight (``benchmarks/README.md``).
     plateau : float
         Wide regions dimmer than this fraction of the brightest lumen within 10 mm (a vein, a false lumen:
         ``barrier.under_enhanced``) and what the watershed gives them up to the darkest gap
@@ -182,7 +186,7 @@ class SegmentParameters:
     fold: float = 0.0
     calcium_edge: bool = True
     barrier: float = 0.5
-    barrier_reach_mm: float = 1.5
+    barrier_reach_mm: float = 3.0
     plateau: float = 0.8
     chamber_ratio: float = 2.0
     chamber_reach_mm: float = 20.0
