@@ -25,19 +25,20 @@ venous and arterial levels, bolus fade, plaque size, position and density, scann
 coiled ICAs, fat lobules (-110 to -70 HU in CT, brighter than muscle in MR; label 5), and
 MR angiography (no HU: bright lumen, dark calcium and cortical bone, bias field, Rician noise), either
 contrast-enhanced or time-of-flight.  In 3D time-of-flight MRA the repeated excitations saturate the
-stationary tissue: muscle keeps 10-20 % of the inflowing blood's signal and fat, by its short T1, 25-45 %;
-the blood loses signal as its spins saturate on their way through the slab (the bolus fade stands for
-that).  Veins stay as bright as the family draws them (no
-saturation band, the harder case); the flow artefacts of time-of-flight (signal loss in the slow flow of the
-bulb and in the jet beyond a tight stenosis, which make it overgrade) are left out, since the truth is the
-geometry.  A family keyword left at None takes the value the legacy model would use (e.g.
-the legacy gap of 1-2 mm, 1000 HU calcium, a 1 mm FWHM blur).
+stationary tissue: muscle keeps 10-20 % of the inflowing blood's signal and fat, by its short T1,
+25-45 %; the blood loses signal as its spins saturate on their way through the slab (the bolus fade
+stands for that).  Veins stay as bright as the family draws them (no saturation band, the harder
+case); the flow artefacts of time-of-flight (signal loss in the slow flow of the bulb and in the jet
+beyond a tight stenosis, which make it overgrade) are left out, since the truth is the geometry.  A
+family keyword left at None takes the value the legacy model would use (e.g. the legacy gap of
+1-2 mm, 1000 HU calcium, a 1 mm FWHM blur).
 
 The truth is analytic in both: the lumen is a union of spheres along the branch axes minus the
 calcium, so the mask and the signed distance are exact at the voxel centres.
 
 Images are float32 in memory with integer values: HU in CT; unitless signal in MR (about 200-350 in
-muscle and 1200-2500 in the lumen in contrast-enhanced MRA, 40-200 and 400-1000 in time-of-flight).  :func:`write_phantom` stores both as int16.
+muscle and 1200-2500 in the lumen in contrast-enhanced MRA, 40-200 and 400-1000 in time-of-flight).
+:func:`write_phantom` stores both as int16.
 """
 
 from __future__ import annotations
