@@ -39,6 +39,7 @@ from _common import git_state, write_results
 from bench_segmentation import (CRITERIA, branch_seeds, grade, log, meets, meets_all, non_negative, parse_variant,
                                 run_carotid, score)
 from carotid.phantom import make_phantom
+from carotid.phantom.ct import MODALITIES
 from carotid.phantom.family import sample_family
 from carotid.segment import SegmentParameters
 
@@ -120,7 +121,7 @@ def main() -> None:
     parser.add_argument("--jobs", type=non_negative(int), default=1)
     parser.add_argument("--variant", type=parse_variant, default={}, metavar="NAME=VALUE[,NAME=VALUE...]",
                         help="SegmentParameters overrides in place of the defaults")
-    parser.add_argument("--modality", choices=("ct", "mr", "tof"), default=None,
+    parser.add_argument("--modality", choices=MODALITIES, default=None,
                         help="scan every case in this modality (default: the family's draw)")
     parser.add_argument("--name", default=None,
                         help="results file (default rescan, with --variant rescan_variant)")

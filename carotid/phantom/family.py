@@ -77,7 +77,7 @@ def sample_family(seed: int, modality: str | None = None) -> dict:
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise CarotidError(f"seed {seed!r} must be a non-negative integer")
     if modality is not None and modality not in MODALITIES:
-        raise CarotidError(f"modality {modality!r} must be ct, mr, tof or None")
+        raise CarotidError(f"modality {modality!r} must be one of {', '.join(MODALITIES)} or None")
     R = FAMILY_RANGES
     rng = np.random.default_rng([int(seed), 1000])
     u = lambda key: float(rng.uniform(*R[key]))  # noqa: E731
