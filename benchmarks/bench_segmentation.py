@@ -186,9 +186,9 @@ def branch_seeds(phantom) -> np.ndarray:
     return np.array([s["CCA"], s["ICA"], s["ECA"]], float)
 
 
-def run_carotid(volume: Volume, seeds, params: SegmentParameters | None = None) -> dict:
-    """carotid's ``segment`` from ``seeds`` with ``params`` (default: the defaults)."""
-    result, seconds = timed(segment, volume, seeds_xyz=seeds, params=params or SegmentParameters())
+def run_carotid(volume: Volume, seeds, params: SegmentParameters | None = None, stops=None) -> dict:
+    """carotid's ``segment`` from ``seeds`` with ``params`` (default: the defaults) and stop points ``stops``."""
+    result, seconds = timed(segment, volume, seeds_xyz=seeds, params=params or SegmentParameters(), stops_xyz=stops)
     return {"levelset": np.asarray(result.levelset.array, np.float32), "mask": result.mask.array > 0,
             "seconds": seconds, "iterations": result.report["iterations"], "converged": result.report["converged"],
             "stage_seconds": result.report["seconds"],
