@@ -24,8 +24,10 @@ MR cases.
 Usage (from the repository root)::
 
     .venv/bin/python benchmarks/stress_segmentation.py [--seeds 0,1,2,3,4,5,18,26] [--jobs 2]
+        [--variant NAME=VALUE[,NAME=VALUE...]] [--name NAME]
 
-Writes ``results/stress_segmentation.json`` (about 12 minutes with ``--jobs 2``).
+Writes ``results/stress_segmentation.json`` (about 19 minutes with ``--jobs 2``); ``--variant`` runs carotid with
+those ``SegmentParameters`` overrides, ``--name`` names another file.
 """
 
 from __future__ import annotations
@@ -37,9 +39,11 @@ import numpy as np
 from scipy import ndimage
 
 from _common import git_state, write_results
-from bench_segmentation import CRITERIA, branch_seeds, grade, log, meets, meets_all, run_carotid, score
+from bench_segmentation import (CRITERIA, branch_seeds, grade, log, meets, meets_all, parse_variant, run_carotid,
+                                score)
 from carotid.phantom import make_phantom
 from carotid.phantom.family import sample_family
+from carotid.segment import SegmentParameters
 
 
 def _set(**values):
@@ -70,8 +74,9 @@ def vein_stop(phantom) -> np.ndarray:
     return phantom.vein.points[inside][[int(np.argmin(lumen_sdf))]]
 
 
-def run(seed: int, variant: str, stop: bool) -> dict:
-    """carotid with the defaults on family case ``seed`` changed by ``variant`` (with a stop point in the vein)."""
+def run(seed: int, variant: str, stop: bool, overrides: dict) -> dict:
+    """carotid (``SegmentParameters(**overrides)``) on family case ``seed`` changed by ``variant`` (with a stop
+    point in the vein)."""
     kwargs = VARIANTS[variant](sample_family(seed))
     record = {"seed": seed, "variant": variant, "stop_point": stop, "modality": kwargs["modality"]}
     if variant in CT_ONLY and kwargs["modality"] != "ct":
@@ -79,7 +84,8 @@ def run(seed: int, variant: str, stop: bool) -> dict:
     phantom = make_phantom(**kwargs)
     truth = grade(phantom.sdf.array, phantom.mask.array > 0, phantom.image)
     stops = vein_stop(phantom) if stop else None
-    result = score(run_carotid(phantom.image, branch_seeds(phantom), stops=stops), phantom, truth)
+    result = score(run_carotid(phantom.image, branch_seeds(phantom), SegmentParameters(**overrides), stops),
+                   phantom, truth)
     record.update({k: v for k, v in result.items() if k in (
         "status", "error", "grading_error", "dice", "leak_fraction", "nascet_error_points", "min_diameter_error_mm",
         "surface_mean_mm", "surface_max_mm", "seconds")})
@@ -113,14 +119,17 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", default="0,1,2,3,4,5,18,26", help="family seeds, comma-separated")
     parser.add_argument("--jobs", type=int, default=1)
+    parser.add_argument("--variant", type=parse_variant, default={}, metavar="NAME=VALUE[,NAME=VALUE...]",
+                        help="SegmentParameters overrides in place of the defaults")
+    parser.add_argument("--name", default="stress_segmentation", help="results file (default stress_segmentation)")
     options = parser.parse_args()
     try:
         seeds = [int(s) for s in options.seeds.split(",")]
     except ValueError:
         parser.error(f"--seeds {options.seeds!r} must be comma-separated integers")
     git = git_state()
-    jobs = [(seed, variant, stop) for variant in VARIANTS for stop in ((False, True) if variant in WITH_STOP
-                                                                      else (False,)) for seed in seeds]
+    jobs = [(seed, variant, stop, options.variant) for variant in VARIANTS
+            for stop in ((False, True) if variant in WITH_STOP else (False,)) for seed in seeds]
     with Pool(max(options.jobs, 1)) as pool:
         records = pool.starmap(run, jobs, chunksize=1)
     summary = summarise(records)
@@ -128,8 +137,8 @@ def main() -> None:
         log(f"{name}: Dice median {entry['dice_median']:.3f}, worst {entry['dice_worst']['value']:.3f} "
             f"(#{entry['dice_worst']['seed']}), leak worst {100 * entry['leak_worst']:.1f} %, all four "
             f"{entry['meeting']['all_four']} of {entry['cases']}")
-    write_results("stress_segmentation", {"git": git, "family_seeds": seeds, "variants": list(VARIANTS),
-                                          "records": records, "summary": summary})
+    write_results(options.name, {"git": git, "family_seeds": seeds, "variants": list(VARIANTS),
+                                 "overrides": options.variant, "records": records, "summary": summary})
 
 
 if __name__ == "__main__":

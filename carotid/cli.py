@@ -43,7 +43,7 @@ def _segment_parameters(args):
         "alpha": args.alpha, "kernel_radius_mm": args.kernel_radius, "sigma_mm": args.sigma,
         "refine_radius_mm": args.refine_radius, "denoise_iterations": args.denoise,
         "seed_radius_mm": args.seed_radius, "max_iterations": args.max_iterations,
-        "chamber_ratio": args.chamber_ratio, "handle_mm": args.handles,
+        "chamber_ratio": args.chamber_ratio, "companion_depth": args.companion_depth, "handle_mm": args.handles,
         "wall_trunk_mm": args.wall_trunk, "slice_thickness_mm": args.slice_thickness,
         "measure_slice_blur": args.measure_slice_blur,
     }
@@ -134,9 +134,13 @@ def cmd_segment(args) -> int:
               "(--handles 0 keeps them)")
     for found in rep["chambers"] or []:
         ratio = rep["parameters"]["chamber_ratio"]
-        print(f"kept out of the lumen: {found['cores']} chamber(s) wider than {ratio:g} x the vessel's "
-              f"{found['vessel_radius_mm']:.1f} mm radius, {found['excluded_mm3']:.0f} mm^3 "
-              "(--chamber-ratio 0 keeps them)")
+        if found["cores"]:
+            print(f"kept out of the lumen: {found['cores']} chamber(s) wider than {ratio:g} x the vessel's "
+                  f"{found['vessel_radius_mm']:.1f} mm radius (--chamber-ratio 0 keeps them)")
+        if found["companions"]:
+            print(f"kept out of the lumen: {found['companions']} bright vessel(s) running beside the seeded one "
+                  "behind a thin gap (--companion-depth 0 keeps them)")
+        print(f"  {found['excluded_mm3']:.0f} mm^3 kept out, centred at {found['centres_mm']} mm")
     return 0
 
 
@@ -245,6 +249,10 @@ def _add_segment_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--chamber-ratio", type=float, metavar="R",
                    help="a region wider than R times the vessel at the seeds (a heart chamber) is kept out of the "
                         "lumen; 0 keeps it, e.g. an aneurysm (default 2)")
+    p.add_argument("--companion-depth", type=float, metavar="C",
+                   help="a bright vessel running beside the seeded one, behind a gap that dips by at least C of the "
+                        "lumen's contrast (a vein as bright as the artery), is kept out of the lumen; 0 keeps it "
+                        "(default 0.05)")
     p.add_argument("--handles", type=float, metavar="MM",
                    help="remove the lumen's handles (vessels bridged where the image does not resolve the gap "
                         "between them, tunnels through the mask) by cutting bridges or filling tunnels up to 2 MM "

@@ -1,5 +1,6 @@
-"""Segmentation on the inputs that broke it: a touching vein, MR intensities (contrast-enhanced and
-time-of-flight), a stop point, a fading bolus, a chamber, a chamber behind an open valve.
+"""Segmentation on the inputs that broke it: a touching vein, a vein as bright as the artery beside it, MR
+intensities (contrast-enhanced and time-of-flight), a stop point, a fading bolus, a chamber, a chamber behind an
+open valve.
 
 Each test also runs the segmentation with its mechanism switched off and checks that the case then fails,
 so that the case really needs the mechanism (a case any method passes would prove nothing).
@@ -49,23 +50,36 @@ def test_vein_half_a_millimetre_away_stays_out():
     assert p.info["vein"]["min_gap_to_lumen_mm"] == pytest.approx(0.5, abs=0.01)
     overlap, vein = scores(p, segment(p.image, seeds_xyz=cca_seed(p)))
     assert overlap >= 0.92 and vein < 0.01
-    # The paper's GPF alone (no barrier, no under-enhanced neighbours) runs into the vein.
-    _, vein_off = scores(p, segment(p.image, seeds_xyz=cca_seed(p), params=SegmentParameters(barrier=0, plateau=0)))
+    # The paper's GPF alone (no barrier, no under-enhanced neighbours, no companions) runs into the vein.
+    _, vein_off = scores(p, segment(p.image, seeds_xyz=cca_seed(p),
+                                    params=SegmentParameters(barrier=0, plateau=0, companion_depth=0)))
+    assert vein_off > 0.5
+
+
+def test_vein_as_bright_as_the_artery_beside_it_stays_out():
+    """Vein at 85 %, 0.5 mm away: too bright to tell apart by intensity, and the blurred gap stays above every
+    threshold; the captured region's basin beside the artery is a companion and is kept out."""
+    p = vein_case(0.85, 0.6, 3)
+    result = segment(p.image, seeds_xyz=cca_seed(p))
+    overlap, vein = scores(p, result)
+    assert overlap >= 0.92 and vein < 0.01
+    assert sum(found["companions"] for found in result.report["chambers"]) == 1
+    # Without the companions the front runs along the whole vein.
+    _, vein_off = scores(p, segment(p.image, seeds_xyz=cca_seed(p), params=SegmentParameters(companion_depth=0)))
     assert vein_off > 0.5
 
 
 def test_stop_point_keeps_a_vein_out():
-    """Vein at 85 %, 0.5 mm away: too bright to tell apart by intensity, so the user marks it."""
+    """The same vein with the companions switched off: the user marks it with a stop point."""
     p = vein_case(0.85, 0.6, 3)
-    _, vein_default = scores(p, segment(p.image, seeds_xyz=cca_seed(p)))
-    assert vein_default > 0.5, "premise: the defaults alone leak here (else pick a harder case)"
+    off = SegmentParameters(companion_depth=0)
     stop = p.vein.points[len(p.vein.points) // 3]
-    result = segment(p.image, seeds_xyz=cca_seed(p), stops_xyz=[stop])
+    result = segment(p.image, seeds_xyz=cca_seed(p), stops_xyz=[stop], params=off)
     overlap, vein = scores(p, result)
     assert overlap >= 0.92 and vein < 0.01
     assert result.report["stops_mm"] == [stop.tolist()]
     with pytest.raises(CarotidError, match="stop point"):
-        segment(p.image, seeds_xyz=cca_seed(p), stops_xyz=[[0.0, 0.0, 900.0]])
+        segment(p.image, seeds_xyz=cca_seed(p), stops_xyz=[[0.0, 0.0, 900.0]], params=off)
 
 
 def test_mr_angiogram_with_defaults():

@@ -18,8 +18,8 @@ from scipy import ndimage
 
 from carotid.errors import CarotidError
 from carotid.io import Volume, atomic_dir, write_image, write_json
-from carotid.segment.barrier import (chamber_cores, chamber_neck, competing_region, half_level_barrier,
-                                     half_maximum_speed, point_mask, under_enhanced)
+from carotid.segment.barrier import (chamber_cores, chamber_neck, companion_basins, competing_region,
+                                     half_level_barrier, half_maximum_speed, point_mask, under_enhanced)
 from carotid.segment.calcium import hyperdense_edge
 from carotid.segment.deblur import model_blur, reach_mm, refine
 from carotid.segment.handles import remove_handles
@@ -85,6 +85,12 @@ class SegmentParameters:
         capture stage resumes.  Only with seeds.  0: off.
     chamber_reach_mm : float
         Geodesic distance (mm) from the seeds over which the vessel's radius is taken.
+    companion_depth : float
+        Least dip of the intensity (in units of the lumen's contrast, after a 0.5 mm smoothing) that sets two
+        bright basins of the captured region apart.  A basin beside the seeds' vessel rather than along it is
+        a companion (a vein as bright as the artery, behind a gap the blur nearly fills;
+        ``barrier.companion_basins``): it is kept out of the lumen up to the darkest surface between, as a
+        chamber is, and the capture stage resumes.  Only with seeds.  0: off.
     half_maximum : float
         Weight of the half-maximum force (``barrier.half_maximum_speed``) blended with the potential in the
         refining stage.  The potential's zero lies outside a curved, blurred wall and the half maximum inside
@@ -190,6 +196,7 @@ class SegmentParameters:
     plateau: float = 0.8
     chamber_ratio: float = 2.0
     chamber_reach_mm: float = 20.0
+    companion_depth: float = 0.05
     half_maximum: float = 0.5
     deblur: bool = True
     deblur_iterations: int = 20
@@ -251,6 +258,7 @@ class SegmentParameters:
             (0 <= self.half_maximum <= 1, "half_maximum must lie in [0, 1]"),
             (self.chamber_ratio == 0 or self.chamber_ratio > 1, "chamber_ratio must be 0 (off) or above 1"),
             (self.chamber_reach_mm > 0, "chamber_reach_mm must be positive"),
+            (0 <= self.companion_depth < 1, "companion_depth must lie in [0, 1)"),
             (self.kernel_radius_mm > 0, "kernel_radius_mm must be positive"),
             (self.sigma_mm >= 0, "sigma_mm must not be negative"),
             (self.potential_scale > 0, "potential_scale must be positive"),
@@ -431,29 +439,46 @@ def lumen_levelset(phi: np.ndarray, stopped: np.ndarray | None, seeds_kji: np.nd
 
 def chambers(phi: np.ndarray, image01: np.ndarray, window, model: IntensityModel, spacing_kji,
              params: SegmentParameters, seeds_kji: np.ndarray) -> tuple[np.ndarray | None, dict | None]:
-    """The chambers the captured front ``phi`` has run into, up to the darkest surface between them and the
-    vessel (``barrier.chamber_cores``, ``barrier.competing_region``) or, within one vessel radius of it, the
-    narrowest section (``barrier.chamber_neck``: an open valve's annulus), and their report (centres as array
-    indices); (None, None) when there is none."""
+    """The chambers and companions the captured front ``phi`` has run into, up to the darkest surface between
+    them and the vessel (``barrier.chamber_cores``, ``barrier.companion_basins``,
+    ``barrier.competing_region``) or, for a chamber, within one vessel radius of it, the narrowest section
+    (``barrier.chamber_neck``: an open valve's annulus), and their report (centres as array indices); (None,
+    None) when there is neither."""
     captured = phi < 0
-    cores, vessel, radius = chamber_cores(captured, seeds_kji, spacing_kji, params.chamber_ratio,
-                                          params.chamber_reach_mm)
-    if not cores.any():
+    contrast = contrast_units(image01, window, model)
+    region = None
+    report = {"cores": 0, "vessel_radius_mm": None, "companions": 0}
+    markers = np.zeros(captured.shape, bool)
+    if params.chamber_ratio > 0:
+        cores, vessel, radius = chamber_cores(captured, seeds_kji, spacing_kji, params.chamber_ratio,
+                                              params.chamber_reach_mm)
+        if cores.any():
+            region = competing_region(contrast, vessel, cores, spacing_kji)
+            region = chamber_neck(captured, region & captured, seeds_kji, spacing_kji, radius) | region
+            report.update(cores=int(ndimage.label(cores)[1]), vessel_radius_mm=radius)
+            markers |= cores
+    found = (companion_basins(captured, contrast, seeds_kji, spacing_kji, params.companion_depth)
+             if params.companion_depth > 0 else None)
+    if found is not None:
+        vessel, companions = found
+        beside = competing_region(contrast, vessel, companions, spacing_kji)
+        region = beside if region is None else region | beside
+        report["companions"] = int(ndimage.label(companions)[1])
+        markers |= companions
+    if region is None:
         return None, None
-    region = competing_region(contrast_units(image01, window, model), vessel, cores, spacing_kji)
-    region = chamber_neck(captured, region & captured, seeds_kji, spacing_kji, radius) | region
-    labels, n = ndimage.label(cores)
-    centres = np.array(ndimage.center_of_mass(cores, labels, range(1, n + 1)), float)
-    return region, {"vessel_radius_mm": radius, "cores": n, "centres_kji": centres,
-                    "excluded_mm3": float(np.count_nonzero(region) * np.prod(spacing_kji))}
+    labels, n = ndimage.label(markers)
+    report.update(centres_kji=np.array(ndimage.center_of_mass(markers, labels, range(1, n + 1)), float),
+                  excluded_mm3=float(np.count_nonzero(region) * np.prod(spacing_kji)))
+    return region, report
 
 
 def capture_without_chambers(volume: Volume, phi: np.ndarray, ghat: np.ndarray, g: np.ndarray, image01: np.ndarray,
                              window, model: IntensityModel, params: SegmentParameters, seeds_kji: np.ndarray,
                              stopped: np.ndarray | None, alpha: float, progress=None):
-    """Resume the capture stage without each chamber its converged front ``phi`` ran into (``chambers``) and
-    without what lies beyond it, up to ``CHAMBER_ROUNDS`` times (a front kept out of one heart cavity may
-    reach another).  ``ghat`` is modified in place.
+    """Resume the capture stage without each chamber and companion its converged front ``phi`` ran into
+    (``chambers``) and without what lies beyond it, up to ``CHAMBER_ROUNDS`` times (a front kept out of one
+    heart cavity may reach another).  ``ghat`` is modified in place.
 
     Returns
     -------
@@ -463,9 +488,10 @@ def capture_without_chambers(volume: Volume, phi: np.ndarray, ghat: np.ndarray, 
     iterations : int
         Iterations of the resumed evolutions.
     stopped : ndarray of bool or None
-        ``stopped`` with the chambers.
+        ``stopped`` with the chambers and companions.
     reports : list of dict or None
-        One per round: the vessel's radius, the number of cores, their centres in world mm, the volume kept out.
+        One per round: the number of chamber cores and the vessel's radius (None without a chamber), the number
+        of companions, their centres in world mm, the volume kept out.
     """
     spacing = volume.spacing_kji
     result, iterations, reports = None, 0, None
@@ -650,7 +676,7 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
                         tolerance=params.tolerance, progress=progress)
         phi = result.phi
         iterations.append(result.iterations)
-        if number == 0 and params.chamber_ratio > 0 and seeds_kji is not None:
+        if number == 0 and (params.chamber_ratio > 0 or params.companion_depth > 0) and seeds_kji is not None:
             phi, resumed, more, stopped, chamber_report = capture_without_chambers(
                 volume, phi, ghat, g, image01, window, model, params, seeds_kji, stopped, alpha, progress)
             result = resumed or result
