@@ -319,18 +319,23 @@ def companion_basins(region: np.ndarray, contrast: np.ndarray, seeds_kji: np.nda
     seeded = np.isin(basins, [basins[tuple(nearest[:, k, j, i])] for k, j, i in seeds])
     touching = ndimage.binary_dilation(seeded) & ~seeded & (basins > 0)
     volumes = np.bincount(basins.ravel(), minlength=n + 1) * float(np.prod(spacing_kji))
-    axis, step = tube_axes(capped, spacing_kji, tube_mm)
+    candidates = [b for b in np.unique(basins[touching]) if volumes[b] >= min_volume_mm3]
+    if not candidates:
+        return None
+    surfaces = touching & np.isin(basins, candidates)
+    axis = np.zeros(basins.shape + (3,), np.float32)
+    axis[surfaces] = tube_axes(capped, spacing_kji, tube_mm, np.nonzero(surfaces))
+    pad = np.ceil(4.0 / spacing_kji).astype(int) + 2  # the 1 mm Gaussian's reach, and a voxel for the gradient
+    extents = ndimage.find_objects(basins)
     found = []
-    for basin in np.unique(basins[touching]):
-        if volumes[basin] < min_volume_mm3:
-            continue
-        own = basins == basin
-        surface = np.nonzero(touching & own)
+    for basin in candidates:
+        sub = tuple(slice(max(e.start - p, 0), e.stop + p) for e, p in zip(extents[basin - 1], pad))
+        own = basins[sub] == basin
+        surface = np.nonzero(surfaces[sub] & own)
         normal = np.stack(np.gradient(gaussian_filter(own.astype(np.float32), 1.0 / spacing_kji), *spacing_kji),
                           axis=-1)[surface]
         normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), np.float32(1e-6))
-        along = axis[tuple(np.minimum(i // s, m - 1) for i, s, m in zip(surface, step, axis.shape[:3]))]
-        if np.median(np.abs(np.einsum("ni,ni->n", normal, along))) < across:
+        if np.median(np.abs(np.einsum("ni,ni->n", normal, axis[sub][surface]))) < across:
             found.append(basin)
     if not found:
         return None
@@ -340,34 +345,39 @@ def companion_basins(region: np.ndarray, contrast: np.ndarray, seeds_kji: np.nda
     return vessel, companions
 
 
-def tube_axes(contrast: np.ndarray, spacing_kji, scale_mm: float) -> tuple[np.ndarray, np.ndarray]:
-    """Direction of least curvature of the contrast smoothed over ``scale_mm``: a tube's axis.
+def tube_axes(contrast: np.ndarray, spacing_kji, scale_mm: float, points: tuple) -> np.ndarray:
+    """Direction of least curvature of the contrast smoothed over ``scale_mm`` at ``points``: a tube's axis.
 
-    The smoothed image is sampled every ``scale_mm / 2`` (at least a voxel) along each axis, its Hessian
-    taken by central differences there, and the eigenvector whose eigenvalue is nearest zero kept: along a
-    bright tube the intensity hardly curves, across it it falls off on either side.
+    The smoothed image is sampled every ``scale_mm / 2`` (at least a voxel) along each axis and its Hessian
+    taken by central differences on that grid; at the grid point holding each of ``points`` the eigenvector
+    whose eigenvalue is nearest zero is kept: along a bright tube the intensity hardly curves, across it it
+    falls off on either side.
 
     Parameters
     ----------
     contrast : ndarray, float32, shape (nk, nj, ni)
     spacing_kji : array_like, shape (3,)
     scale_mm : float
+    points : tuple of 3 ndarray of int, shape (n,)
+        Voxel indices (``np.nonzero`` form).
 
     Returns
     -------
-    axes : ndarray, float32, shape (mk, mj, mi, 3)
-        Unit vectors (k, j, i components, mm) on the coarse grid.
-    step : ndarray of int, shape (3,)
-        The coarse grid's step in voxels: voxel ``(k, j, i)`` reads ``axes[k // step[0], j // step[1], i // step[2]]``.
+    ndarray, float32, shape (n, 3)
+        Unit vectors (k, j, i components, mm).
     """
     spacing_kji = np.asarray(spacing_kji, float)
     step = np.maximum(np.floor(0.5 * scale_mm / spacing_kji), 1).astype(int)
     coarse = gaussian_filter(contrast, scale_mm / spacing_kji)[::step[0], ::step[1], ::step[2]]
     h = spacing_kji * step
-    hessian = np.stack([np.stack(np.gradient(g, *h), axis=-1) for g in np.gradient(coarse, *h)], axis=-2)
+    cells, where = np.unique(np.stack([np.minimum(p // s, m - 1) for p, s, m in zip(points, step, coarse.shape)]),
+                             axis=1, return_inverse=True)
+    hessian = np.stack([np.stack([d[tuple(cells)] for d in np.gradient(g, *h)], axis=-1)
+                        for g in np.gradient(coarse, *h)], axis=-2)
     values, vectors = np.linalg.eigh(0.5 * (hessian + np.swapaxes(hessian, -1, -2)))
     flattest = np.argmin(np.abs(values), axis=-1)
-    return np.take_along_axis(vectors, flattest[..., None, None], axis=-1)[..., 0].astype(np.float32), step
+    axes = np.take_along_axis(vectors, flattest[:, None, None], axis=-1)[..., 0]
+    return axes[where.ravel()].astype(np.float32)
 
 
 def chamber_neck(region: np.ndarray, chamber: np.ndarray, seeds_kji: np.ndarray, spacing_kji,
