@@ -70,7 +70,8 @@ def test_vein_as_bright_as_the_artery_beside_it_stays_out():
 
 
 def test_stop_point_keeps_a_vein_out():
-    """The same vein with the companions switched off: the user marks it with a stop point."""
+    """The same vein with the companions switched off, where the front runs along it
+    (``test_vein_as_bright_as_the_artery_beside_it_stays_out``): the user marks it with a stop point."""
     p = vein_case(0.85, 0.6, 3)
     off = SegmentParameters(companion_depth=0)
     stop = p.vein.points[len(p.vein.points) // 3]
