@@ -39,8 +39,8 @@ import numpy as np
 from scipy import ndimage
 
 from _common import git_state, write_results
-from bench_segmentation import (CRITERIA, branch_seeds, grade, log, meets, meets_all, parse_variant, run_carotid,
-                                score)
+from bench_segmentation import (CRITERIA, branch_seeds, grade, log, meets, meets_all, non_negative, parse_variant,
+                                run_carotid, score)
 from carotid.phantom import make_phantom
 from carotid.phantom.family import sample_family
 from carotid.segment import SegmentParameters
@@ -118,7 +118,7 @@ def main() -> None:
     """Run the variants and write ``results/stress_segmentation.json``."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", default="0,1,2,3,4,5,18,26", help="family seeds, comma-separated")
-    parser.add_argument("--jobs", type=int, default=1)
+    parser.add_argument("--jobs", type=non_negative(int), default=1)
     parser.add_argument("--variant", type=parse_variant, default={}, metavar="NAME=VALUE[,NAME=VALUE...]",
                         help="SegmentParameters overrides in place of the defaults")
     parser.add_argument("--name", default="stress_segmentation", help="results file (default stress_segmentation)")

@@ -313,10 +313,8 @@ def companion_basins(region: np.ndarray, contrast: np.ndarray, seeds_kji: np.nda
     if n < 2:
         return None
     basins = watershed(-smooth, peaks, mask=inside)
-    seeds = np.clip(np.round(np.atleast_2d(seeds_kji) - [s.start for s in box]).astype(int), 0,
-                    np.asarray(inside.shape) - 1)
-    nearest = ndimage.distance_transform_edt(basins == 0, return_distances=False, return_indices=True)
-    seeded = np.isin(basins, [basins[tuple(nearest[:, k, j, i])] for k, j, i in seeds])
+    starts = _nearest_voxels(basins > 0, np.atleast_2d(seeds_kji) - [s.start for s in box])
+    seeded = np.isin(basins, [basins[start] for start in starts])
     touching = ndimage.binary_dilation(seeded) & ~seeded & (basins > 0)
     volumes = np.bincount(basins.ravel(), minlength=n + 1) * float(np.prod(spacing_kji))
     candidates = [b for b in np.unique(basins[touching]) if volumes[b] >= min_volume_mm3]
@@ -446,11 +444,17 @@ def _geodesic(region: np.ndarray, seeds_kji: np.ndarray, spacing_kji: np.ndarray
     """
     from skimage.graph import MCP_Geometric
 
-    nearest = ndimage.distance_transform_edt(~region, return_distances=False, return_indices=True)
-    idx = np.clip(np.round(seeds_kji).astype(int), 0, np.asarray(region.shape) - 1)
-    starts = {tuple(int(nearest[a][tuple(i)]) for a in range(3)) for i in idx}
+    starts = set(_nearest_voxels(region, seeds_kji))
     geodesic, _ = MCP_Geometric(np.where(region, 1.0, np.inf), sampling=tuple(spacing_kji)).find_costs(list(starts))
     return geodesic
+
+
+def _nearest_voxels(region: np.ndarray, points_kji: np.ndarray) -> list[tuple[int, int, int]]:
+    """For each point (continuous array indices, shape (m, 3), rounded and clipped to the grid), the voxel of
+    ``region`` nearest it (``distance_transform_edt``'s indices)."""
+    nearest = ndimage.distance_transform_edt(~region, return_distances=False, return_indices=True)
+    idx = np.clip(np.round(np.atleast_2d(points_kji)).astype(int), 0, np.asarray(region.shape) - 1)
+    return [tuple(int(nearest[a][tuple(i)]) for a in range(3)) for i in idx]
 
 
 def point_mask(points_kji: np.ndarray, shape) -> np.ndarray:
