@@ -14,6 +14,8 @@ parameters to a corner of the family's range or past it:
 * ``blur 1.0 mm``: the scanner blur's standard deviation past the range's 0.8 mm;
 * ``noise x 1.6``: past the range's 40 HU in CT;
 * ``voxels 0.6 x 0.6 x 1.25 mm``: coarser than the range's 0.5 x 0.5 x 1.0;
+* ``CT 250 HU, fade 0.3, noise 40 HU``: the range's lowest contrast-to-noise ratio, its weakest bolus
+  fading most under its strongest noise (inside the range: 250-600 HU, fade 0-0.3, noise 10-40 HU);
 * ``CT 180 HU, fade 0.45``: a weak, fading bolus, past the range's 250 HU and 0.3;
 * ``calcium 2500 HU``: a large plaque of dense calcium, past the range's 1500 HU.
 
@@ -26,7 +28,7 @@ Usage (from the repository root)::
     .venv/bin/python benchmarks/stress_segmentation.py [--seeds 0,1,2,3,4,5,18,26] [--jobs 2]
         [--variant NAME=VALUE[,NAME=VALUE...]] [--name NAME]
 
-Writes ``results/stress_segmentation.json`` (about 19 minutes with ``--jobs 2``); ``--variant`` runs carotid with
+Writes ``results/stress_segmentation.json`` (about 21 minutes with ``--jobs 2``); ``--variant`` runs carotid with
 those ``SegmentParameters`` overrides, ``--name`` names another file.
 """
 
@@ -57,10 +59,11 @@ VARIANTS = {
     "blur 1.0 mm": _set(blur_sigma_mm=1.0),
     "noise x 1.6": lambda kw: {**kw, "noise": 1.6 * kw["noise"]},
     "voxels 0.6 x 0.6 x 1.25 mm": _set(spacing=[0.6, 0.6, 1.25]),
+    "CT 250 HU, fade 0.3, noise 40 HU": _set(arterial_hu=250.0, bolus_fade=0.3, noise=40.0),
     "CT 180 HU, fade 0.45": _set(arterial_hu=180.0, bolus_fade=0.45),
     "calcium 2500 HU": _set(calcium_hu=2500.0, plaque_size=1.5),
 }
-CT_ONLY = ("CT 180 HU, fade 0.45", "calcium 2500 HU")
+CT_ONLY = ("CT 250 HU, fade 0.3, noise 40 HU", "CT 180 HU, fade 0.45", "calcium 2500 HU")
 WITH_STOP = ("vein 0.3 mm at 70 %", "vein 0.3 mm at 80 %", "vein 0.3 mm at 90 %")
 
 
