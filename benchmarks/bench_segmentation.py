@@ -101,6 +101,7 @@ from carotid.io import Volume, read_image
 from carotid.phantom import make_phantom
 from carotid.phantom.family import sample_family
 from carotid.segment import SegmentParameters, segment
+from carotid.segment.intensity import VALIDATED_CONTRAST_TO_NOISE
 from carotid.segment.metrics import dice, surface_distances, topology
 
 CTA = Path("/work/shared/data/thoracic-cta-totalseg/models")
@@ -192,7 +193,8 @@ def run_carotid(volume: Volume, seeds, params: SegmentParameters | None = None, 
     return {"levelset": np.asarray(result.levelset.array, np.float32), "mask": result.mask.array > 0,
             "seconds": seconds, "iterations": result.report["iterations"], "converged": result.report["converged"],
             "stage_seconds": result.report["seconds"],
-            "handles_removed": sum(c["handles_removed"] for c in result.report["handles_removed"])}
+            "handles_removed": sum(c["handles_removed"] for c in result.report["handles_removed"]),
+            "contrast_to_noise": result.report["intensity"]["contrast_to_noise"]}
 
 
 def run_vmtk(volume: Volume, seeds, threshold: float) -> dict:
@@ -634,6 +636,11 @@ def summarise(cases: list[dict], methods=METHODS) -> dict:
         m["meeting"]["all_four"] = int(sum(meets_all(r) for _, r in records if r.get("status") == "ok"))
         m["handles"] = {"cases_with_extra_handles": [seed for seed, r in ok if r.get("extra_handles", 0) > 0],
                         "cases_with_handles_removed": [seed for seed, r in ok if r.get("handles_removed", 0) > 0]}
+        ratios = [(seed, r["contrast_to_noise"]) for seed, r in ok if r.get("contrast_to_noise") is not None]
+        if ratios:  # the segmentation's accuracy is measured down to the lowest (VALIDATED_CONTRAST_TO_NOISE)
+            seed, lowest = min(ratios, key=lambda sr: sr[1])
+            m["contrast_to_noise_lowest"] = {"value": lowest, "seed": seed,
+                                             "validated_in_carotid": VALIDATED_CONTRAST_TO_NOISE}
         half = [(r.get("nascet_error_points_half_width"), r.get("min_diameter_error_mm_half_width"))
                 for _, r in ok if r.get("nascet_error_points_half_width") is not None]
         if half:

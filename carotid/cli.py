@@ -123,6 +123,13 @@ def cmd_segment(args) -> int:
     wall = "" if rep["wall"] is None else f"whole vessel {rep['wall']['volume_mm3']:.0f} mm^3, "
     print(f"segmentation written to {out}: lumen {rep['lumen_volume_mm3']:.0f} mm^3, {wall}"
           f"{sum(rep['iterations'])} iterations, {state}, {rep['seconds']['total_s']:.1f} s")
+    quality = rep["intensity"]
+    if quality.get("contrast_to_noise") is not None and (
+            quality["contrast_to_noise"] < quality["contrast_to_noise_validated"]):
+        print(f"warning: the lumen's contrast-to-noise ratio is {quality['contrast_to_noise']:.1f} (contrast "
+              f"{quality['contrast']:.4g}, noise {quality['noise']:.3g}), below "
+              f"{quality['contrast_to_noise_validated']:g}, the lowest the segmentation's accuracy was measured at: "
+              "the wall may follow the noise, and a stenosis grade tight or loose")
     if rep["topology"]["handles"]:
         print(f"warning: the lumen has {rep['topology']['handles']} handle(s), where a vessel tree has none: vessels "
               "bridged where the image does not resolve the gap between them, or tunnels through the lumen; check the "

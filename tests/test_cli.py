@@ -26,7 +26,7 @@ def test_segment_writes_the_case_folder(phantom_dir, tmp_path, capsys):
     seed = json.loads((phantom_dir / "phantom.json").read_text())["seeds_mm"]["CCA"]
     case = tmp_path / "case"
     code, out, _ = run_and_capture(capsys, ["segment", phantom_dir / "image.nii.gz", "-o", case, "--seed", *seed])
-    assert code == 0 and "segmentation written" in out
+    assert code == 0 and "segmentation written" in out and "contrast-to-noise" not in out
     folder = case / "segmentation"
     assert sorted(p.name for p in folder.iterdir()) == ["levelset.nii.gz", "mask.nii.gz", "report.json"]
     levelset = read_image(folder / "levelset.nii.gz")
@@ -40,6 +40,18 @@ def test_segment_writes_the_case_folder(phantom_dir, tmp_path, capsys):
     report = json.loads((folder / "report.json").read_text())
     assert report["initialisation"] == "seed" and report["lumen_volume_mm3"] > 0
     assert report["parameters"]["kernel_radius_mm"] == 10.0
+
+
+def test_segment_warns_of_a_lumen_noisier_than_validated(tmp_path, capsys):
+    noisy = tmp_path / "noisy"
+    assert main(["phantom", str(noisy), "--noise", "70", "--seed", "3"]) == 0
+    seed = json.loads((noisy / "phantom.json").read_text())["seeds_mm"]["CCA"]
+    code, out, _ = run_and_capture(capsys, ["segment", noisy / "image.nii.gz", "-o", tmp_path / "case", "--seed",
+                                            *seed])
+    quality = json.loads((tmp_path / "case" / "segmentation" / "report.json").read_text())["intensity"]
+    assert quality["noise"] == pytest.approx(70.0, rel=0.1)
+    assert code == 0 and quality["contrast_to_noise"] < quality["contrast_to_noise_validated"]
+    assert f"contrast-to-noise ratio is {quality['contrast_to_noise']:.1f}" in out
 
 
 def test_segment_options_reach_the_parameters(phantom_dir, tmp_path, capsys):

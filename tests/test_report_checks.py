@@ -36,6 +36,16 @@ def test_mesh_quality_flags_thin_tetrahedra_and_missing_layers():
     assert flags["volume error against the surface"] is True
 
 
+def test_a_lumen_noisier_than_validated_is_flagged():
+    def passed(ratio):
+        record = {"intensity": {"contrast_to_noise": ratio, "contrast_to_noise_validated": 7.5}}
+        return {c.quantity: c.passed for c in quality_checks(record, {}, {}, {})}[
+            "lumen contrast-to-noise ratio (validated down to the criterion)"]
+
+    assert passed(5.4) is False and passed(7.5) is True and passed(30.0) is True
+    assert not any("contrast-to-noise" in c.quantity for c in quality_checks({"intensity": {}}, {}, {}, {}))
+
+
 def test_exposure_fractions_are_area_weighted():
     # two unit squares side by side (x in [0, 1] and [1, 2]); TAWSS low and OSI high on the left one only
     square = pv.Plane(center=(1.0, 0.5, 0.0), i_size=2.0, j_size=1.0, i_resolution=40, j_resolution=20).triangulate()

@@ -7,6 +7,7 @@ from carotid.errors import CarotidError
 from carotid.phantom import LABELS
 from carotid.segment import SegmentParameters, segment
 from carotid.segment.init import seed_levelset
+from carotid.segment.intensity import local_level, lumen_noise
 from carotid.segment.metrics import dice, surface_distances, topology
 from conftest import ACCURACY_CASES, phantom
 
@@ -62,6 +63,25 @@ def test_outputs_are_a_signed_distance_and_a_report():
     assert report["lumen_volume_mm3"] == pytest.approx(np.count_nonzero(phi < 0) * np.prod(p.image.spacing_kji))
     assert set(report["seconds"]) >= {"potential_s", "evolution_s", "total_s"}
     assert report["topology"] == {"components": 1, "handles": 0}
+    quality = report["intensity"]
+    assert quality["noise"] == pytest.approx(p.info["noise"], rel=0.1)
+    assert quality["contrast_to_noise"] == pytest.approx(quality["contrast"] / quality["noise"])
+
+
+def test_lumen_noise_is_the_noise_about_the_followed_level():
+    # A tube whose level fades by 30 % of its contrast along z, under noise of 20: the spread about one level
+    # holds the fade too, the spread about the followed level only the noise.
+    rng = np.random.default_rng(3)
+    spacing = (0.5, 0.5, 0.5)
+    k, j, i = np.mgrid[:120, :40, :40]
+    fade = 400.0 - 120.0 * k / 119.0
+    inside = (j - 19.5) ** 2 + (i - 19.5) ** 2 < 12.0 ** 2
+    image = np.where(inside, fade, 40.0) + rng.normal(0.0, 20.0, inside.shape)
+    core = (j - 19.5) ** 2 + (i - 19.5) ** 2 < 8.0 ** 2
+    followed = local_level(image.astype(np.float32), core, spacing, 10.0, 400.0)
+    assert lumen_noise(image, core, followed) == pytest.approx(20.0, rel=0.05)
+    assert lumen_noise(image, core, float(np.median(image[core]))) > 1.4 * 20.0
+    assert lumen_noise(image, core & (k == 0) & (j == 19), followed) is None  # too few voxels
 
 
 def test_topology_counts_components_and_handles_not_cavities():

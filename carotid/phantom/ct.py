@@ -66,6 +66,7 @@ CALCIUM_HU = 1000.0            # the legacy plaque
 MAX_STENOSIS = 0.95            # largest area reduction
 ICA_SHAPES = ("smooth", "kink", "loop")
 MODALITIES = ("ct", "mr", "tof")
+MAGNITUDE = ("mr", "tof")      # magnitude images: bias field, Rician noise, calcium a signal void
 MR_TISSUE = (200.0, 350.0)     # muscle signal, MR units (contrast-enhanced MRA)
 MR_FAT_RATIO = (1.5, 2.2)      # fat over muscle signal
 MR_ARTERIAL = (1200.0, 2500.0)  # proximal lumen signal, MR units
@@ -625,7 +626,7 @@ def make_phantom(stenosis: float | None = None, noise: float | None = None, seed
     modality = "ct" if modality is None else str(modality).lower()
     if modality not in MODALITIES:
         raise CarotidError(f"modality {modality!r} must be one of {', '.join(MODALITIES)}")
-    mr = modality in ("mr", "tof")  # magnitude images: bias field, Rician noise, calcium a signal void
+    mr = modality in MAGNITUDE
     tof = modality == "tof"
     shape_kind = "smooth" if ica_shape is None else str(ica_shape).lower()
     if shape_kind not in ICA_SHAPES:

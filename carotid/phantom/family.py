@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from carotid.phantom.ct import MODALITIES, TOF_ARTERIAL, TOF_TISSUE, rescale
+from carotid.phantom.ct import MAGNITUDE, MODALITIES, TOF_ARTERIAL, TOF_TISSUE, rescale
 
 # The ranges of :func:`sample_family` (units in the keys' names or in its docstring).
 FAMILY_RANGES = {
@@ -98,7 +98,7 @@ def sample_family(seed: int, modality: str | None = None) -> dict:
     shape = shapes[int(rng.choice(len(shapes), p=list(R["ica_shape"].values())))]
     drawn_mr = rng.uniform() < R["mr_probability"]
     bias = u("bias")
-    mr = drawn_mr if modality is None else modality in ("mr", "tof")
+    mr = drawn_mr if modality is None else modality in MAGNITUDE
     tof = modality == "tof"
 
     kwargs = {

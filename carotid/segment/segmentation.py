@@ -24,8 +24,9 @@ from carotid.segment.calcium import hyperdense_edge
 from carotid.segment.deblur import model_blur, reach_mm, refine
 from carotid.segment.handles import remove_handles
 from carotid.segment.init import automatic_region, check_points, mask_levelset, seed_levelset, seed_sample
-from carotid.segment.intensity import (IntensityModel, estimate_from_sample, local_level, local_radius,
-                                       provisional_window, through_plane_variance)
+from carotid.segment.intensity import (VALIDATED_CONTRAST_TO_NOISE, IntensityModel, estimate_from_sample,
+                                       local_level, local_radius, lumen_noise, provisional_window,
+                                       through_plane_variance)
 from carotid.segment.levelset import evolve, signed_distance
 from carotid.segment.metrics import topology
 from carotid.segment.potential import gpf_potential
@@ -683,8 +684,9 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
             iterations[-1] += more
         converged.append(result.converged)
     del ghat, g, image01
-    thickness, thickness_source = slice_thickness(volume, params, model)
+    thickness, thickness_source = None, "no refinement"
     if params.deblur and model.blur:
+        thickness, thickness_source = slice_thickness(volume, params, model)
         phi = deblur(image, phi, spacing, model, params, stopped, dense, thickness)
     timings["evolution_s"] = time.perf_counter() - t1
     intensity = {**model.as_dict(), "window": [float(w) for w in lumen_window(model, params)], "hyperdense": hyperdense,
@@ -700,6 +702,10 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
     t2 = time.perf_counter()
     phi, mask, handles_removed = lumen_levelset(phi, stopped, seeds_kji, spacing, params)
     timings["distance_s"] = time.perf_counter() - t2
+    noise = lumen_noise(source, phi < -(2.0 * (model.blur or 0.0) + float(spacing.max())),
+                        model.lumen if level is None else level)
+    intensity.update(noise=noise, contrast_to_noise=None if not noise else model.contrast / noise,
+                     contrast_to_noise_validated=VALIDATED_CONTRAST_TO_NOISE)
 
     wall, wall_report = None, None
     if params.wall:
