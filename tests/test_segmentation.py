@@ -69,7 +69,7 @@ def test_outputs_are_a_signed_distance_and_a_report():
 
 
 def test_lumen_noise_is_the_noise_about_the_followed_level():
-    # A tube whose level fades by 30 % of its contrast along z, under noise of 20: the spread about one level
+    # A tube whose level fades by a third of its contrast along z, under noise of 20: the spread about one level
     # holds the fade too, the spread about the followed level only the noise.
     rng = np.random.default_rng(3)
     spacing = (0.5, 0.5, 0.5)
