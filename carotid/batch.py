@@ -34,6 +34,7 @@ from carotid.flow.indices import HIGH_OSI, LOW_TAWSS_PA, area_fraction, node_are
 from carotid.flow.regions import INDEX_UNITS, REGION_INDICES, REGION_NAMES
 from carotid.io import atomic_path, read_json, write_json
 from carotid.pipeline import PROGRESS_SECONDS, STAGES, format_duration, read_case, run_stage
+from carotid.segment.intensity import VALIDATED_CONTRAST_TO_NOISE
 
 BATCH_RANGES = {"workers": (1, 256), "retries": (0, 100)}  # LocalCluster processes; retries of a stage
 SIGNIFICANT_DIGITS = 4  # of the real numbers in cohort.csv
@@ -129,6 +130,9 @@ COHORT_COLUMNS = {
     "reason": ("", "why the case failed"),
     "image": ("", "input image"),
     "lumen_volume_mm3": ("mm^3", "lumen volume of the segmentation"),
+    "lumen_contrast_to_noise": ("ratio", "lumen contrast over the noise in the lumen's core (segmentation "
+                                         "report.json intensity); the segmentation's accuracy is measured down "
+                                         f"to {VALIDATED_CONTRAST_TO_NOISE:g}"),
     "stenosis_branch": ("", "branch graded in nascet and ecst: the ICA, else the most narrowed branch; empty when "
                             "no carotid bifurcation was found"),
     "nascet": ("fraction", "NASCET stenosis degree of stenosis_branch, 1 - d_min / d_distal (diameters)"),
@@ -276,6 +280,7 @@ def case_summary(case: Case, case_dir: Path, outcome: dict) -> dict:
         "case_id": case.case_id, "status": outcome["status"], "failed_stage": outcome.get("failed_stage", ""),
         "reason": outcome.get("reason", ""), "image": str(case.image),
         "lumen_volume_mm3": segmentation.get("lumen_volume_mm3", ""),
+        "lumen_contrast_to_noise": _cell_value(_lookup(segmentation, "intensity", "contrast_to_noise")),
         "stenosis_branch": stenosis.get("branch", ""), "nascet": stenosis.get("nascet", ""),
         "ecst": stenosis.get("ecst", ""),
         "mesh_tetrahedra": mesh.get("elements", {}).get("tetrahedra", ""),

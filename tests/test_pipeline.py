@@ -196,6 +196,7 @@ def test_batch_isolates_a_corrupt_case(small_image, tmp_path, capsys):
         row = rows[name]
         assert row["status"] == "ok", row
         assert float(row["lumen_volume_mm3"]) > 0 and int(row["mesh_tetrahedra"]) > 0
+        assert float(row["lumen_contrast_to_noise"]) > 7.5  # phantoms at 15 HU of noise
         assert float(row["tawss_mean_pa"]) > 0 and 0 <= float(row["osi_area_fraction"]) <= 1
         assert 0 <= float(row["low_tawss_area_fraction"]) <= 1
         assert 0 <= float(row["nascet"]) < 1  # a fraction, as in geometry.json (phantom0's true NASCET is 5 %)
@@ -248,6 +249,8 @@ def test_cohort_csv_is_tidy_and_described(small_image, tmp_path):
                                                           rel=1e-3)
     assert found["stenosis_branch"] == geometry["stenosis"]["branch"]
     assert float(found["nascet"]) == pytest.approx(geometry["stenosis"]["nascet"], rel=1e-3)
+    report = json.loads((case / "segmentation" / "report.json").read_text())
+    assert float(found["lumen_contrast_to_noise"]) == pytest.approx(report["intensity"]["contrast_to_noise"], rel=1e-3)
     assert tube_row["nascet"] == tube_row["ecst"] == tube_row["stenosis_branch"] == ""
     sidecar = json.loads((tmp_path / "cohort.json").read_text())
     assert list(sidecar["columns"]) == header
