@@ -88,14 +88,13 @@ def quality_checks(segmentation: dict, surface: dict, mesh: dict, flow: dict) ->
         Criteria whose quantity is recorded; absent quantities are not judged, nor the cycle-to-cycle TAWSS
         change of a flow run without a periodicity tolerance (``periodic.status`` "not assessed").
     """
+    validated = _get(segmentation, "intensity.contrast_to_noise_validated")  # the ratio's bound, as recorded
     rows = [
         ("segmentation", "level set converged", _get(segmentation, "converged"), "yes", lambda v: bool(v)),
         ("segmentation", "handles of the lumen (a vessel tree has none)", _get(segmentation, "topology.handles"), "0",
          lambda v: v == 0),
         ("segmentation", "lumen contrast-to-noise ratio (validated down to the criterion)",
-         _get(segmentation, "intensity.contrast_to_noise"),
-         f">= {_get(segmentation, 'intensity.contrast_to_noise_validated')}",
-         lambda v: v >= _get(segmentation, "intensity.contrast_to_noise_validated")),
+         _get(segmentation, "intensity.contrast_to_noise"), f">= {validated}", lambda v: v >= validated),
         ("surface", "watertight", _get(surface, "watertight"), "yes", lambda v: bool(v)),
         ("surface", "self-intersections", _get(surface, "self_intersections"), "0", lambda v: v == 0),
         ("surface", "non-manifold edges", _get(surface, "nonmanifold_edges"), "0", lambda v: v == 0),
