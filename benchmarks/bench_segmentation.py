@@ -194,6 +194,7 @@ def run_carotid(volume: Volume, seeds, params: SegmentParameters | None = None, 
             "seconds": seconds, "iterations": result.report["iterations"], "converged": result.report["converged"],
             "stage_seconds": result.report["seconds"],
             "handles_removed": sum(c["handles_removed"] for c in result.report["handles_removed"]),
+            "cavities_filled": result.report["cavities_filled"]["count"],
             "contrast_to_noise": result.report["intensity"]["contrast_to_noise"]}
 
 
@@ -635,7 +636,8 @@ def summarise(cases: list[dict], methods=METHODS) -> dict:
             m["meeting"][key] = int(sum(meets(key, r.get(key)) for _, r in records if r.get("status") == "ok"))
         m["meeting"]["all_four"] = int(sum(meets_all(r) for _, r in records if r.get("status") == "ok"))
         m["handles"] = {"cases_with_extra_handles": [seed for seed, r in ok if r.get("extra_handles", 0) > 0],
-                        "cases_with_handles_removed": [seed for seed, r in ok if r.get("handles_removed", 0) > 0]}
+                        "cases_with_handles_removed": [seed for seed, r in ok if r.get("handles_removed", 0) > 0],
+                        "cases_with_cavities_filled": [seed for seed, r in ok if r.get("cavities_filled", 0) > 0]}
         ratios = [(seed, r["contrast_to_noise"]) for seed, r in ok if r.get("contrast_to_noise") is not None]
         if ratios:  # the segmentation's accuracy is measured down to the lowest (VALIDATED_CONTRAST_TO_NOISE)
             seed, lowest = min(ratios, key=lambda sr: sr[1])

@@ -4,7 +4,7 @@ import numpy as np
 from scipy import ndimage
 from skimage.measure import euler_number
 
-from carotid.segment.handles import euler_changes, remove_handles
+from carotid.segment.handles import cavities, euler_changes, remove_handles
 from carotid.segment.metrics import topology
 
 SPACING = np.array([0.6, 0.4, 0.4])  # anisotropic, array order (k, j, i)
@@ -101,3 +101,17 @@ def test_the_euler_characteristic_of_each_piece_matches_scikit_image():
         change = euler_changes(mask, labels, n)
         base = euler_number(mask, connectivity=3)
         assert all(change[i] == euler_number(mask ^ (labels == i), connectivity=3) - base for i in range(1, n + 1))
+
+
+def test_cavities_are_the_enclosed_voids_and_not_the_pockets():
+    """A tube running out of the image with a void at its axis and a pocket open through a 0.8 mm neck: the void
+    is a cavity, the pocket and the background at the image's ends are not."""
+    points = grid()
+    z, y, x = points
+    void = rod(points, (0, 0, 0), (0, 0, 0.01), 0.7)
+    pocket = rod(points, (8, 0, 0), (8, 0, 0.01), 2.0) | rod(points, (8, 0, 0), (8, 0, 5), 0.4)
+    tube = np.hypot(y, x) <= 4.0
+    assert tube[0].any() and tube[-1].any()
+    lumen = tube & ~void & ~pocket
+    assert np.array_equal(cavities(lumen, SPACING), void)
+    assert not cavities(tube, SPACING).any()

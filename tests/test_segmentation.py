@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from carotid.errors import CarotidError
 from carotid.phantom import LABELS
@@ -63,6 +64,7 @@ def test_outputs_are_a_signed_distance_and_a_report():
     assert report["lumen_volume_mm3"] == pytest.approx(np.count_nonzero(phi < 0) * np.prod(p.image.spacing_kji))
     assert set(report["seconds"]) >= {"potential_s", "evolution_s", "total_s"}
     assert report["topology"] == {"components": 1, "handles": 0}
+    assert report["cavities_filled"] == {"count": 0, "volume_mm3": 0.0}
     quality = report["intensity"]
     assert quality["noise"] == pytest.approx(p.info["noise"], rel=0.1)
     assert quality["contrast_to_noise"] == pytest.approx(quality["contrast"] / quality["noise"])
@@ -140,7 +142,6 @@ def test_lumen_levelset_holds_out_neighbours_keeps_the_seeded_tree_and_cuts_a_br
     """segment's clean-up of a refined front that overlaps a held-out vein, holds a blob apart from the
     artery and a bridge between two limbs of a loop: the vein and the blob go, the bridge is cut, and the
     level set is the signed distance of the looped artery that is left."""
-    from scipy import ndimage
 
     from carotid.segment.segmentation import lumen_levelset
     from test_handles import SPACING, grid, looped_vessel, rod
@@ -154,7 +155,7 @@ def test_lumen_levelset_holds_out_neighbours_keeps_the_seeded_tree_and_cuts_a_br
     phi = (ndimage.distance_transform_edt(~front, sampling=SPACING)
            - ndimage.distance_transform_edt(front, sampling=SPACING)).astype(np.float32)
     seed = np.argwhere(rod(points, (7.9, 0, -3.5), (8.1, 0, -3.5), 0.3)).mean(axis=0)[None]
-    out, mask, changes = lumen_levelset(phi, vein, seed, SPACING, SegmentParameters())
+    out, mask, changes, cavities = lumen_levelset(phi, vein, seed, SPACING, SegmentParameters())
     assert np.array_equal(mask > 0, out < 0)
     assert topology(mask > 0) == {"components": 1, "handles": 0}
     assert [c["kind"] for c in changes] == ["cut"]
@@ -165,3 +166,30 @@ def test_lumen_levelset_holds_out_neighbours_keeps_the_seeded_tree_and_cuts_a_br
     assert -2.2 < out[tuple(np.round(seed[0]).astype(int))] < -1.4
     centre = np.argwhere(rod(points, (-11.1, 0, 9.0), (-10.9, 0, 9.0), 0.3)).mean(axis=0).round().astype(int)
     assert abs(out[tuple(centre)] - min(3.5, SegmentParameters().far_mm)) < 0.4
+
+
+def test_lumen_levelset_fills_the_cavities_a_front_or_a_held_out_pit_leaves():
+    """A front grown around a dark voxel at a tube's axis, and a voxel at the axis held out as a neighbour (a
+    noise pit taken for an under-enhanced plateau), leave voids inside the lumen: both are filled, so that the
+    level set at the axis is the tube's radius and not the distance to the void (which the inscribed radius of
+    the centerlines and the stenosis grading read as a throat)."""
+    from carotid.segment.segmentation import lumen_levelset
+    from test_handles import SPACING, grid, rod
+
+    points = grid()
+    tube = rod(points, (-16, 0, 0), (16, 0, 0), 3.0)
+    distance = np.stack(points, axis=-1)
+    pit, held, seed = (np.unravel_index(np.argmin(np.linalg.norm(distance - [z, 0, 0], axis=-1)), tube.shape)
+                       for z in (0.0, 3.0, -8.0))
+    front = tube.copy()
+    front[pit] = False
+    phi = -ndimage.distance_transform_edt(front, sampling=SPACING).astype(np.float32)
+    phi[~front] = 0.3
+    stopped = np.zeros(tube.shape, bool)
+    stopped[held] = True
+    out, mask, changes, filled = lumen_levelset(phi, stopped, np.array([seed], float), SPACING, SegmentParameters())
+    assert filled["count"] == 2 and filled["volume_mm3"] == pytest.approx(2 * np.prod(SPACING))
+    assert np.array_equal(mask > 0, tube) and changes == []
+    assert topology(mask > 0) == {"components": 1, "handles": 0}
+    for voxel in (pit, held):
+        assert out[voxel] == pytest.approx(-3.0, abs=0.45)

@@ -1,4 +1,4 @@
-"""Handles of the lumen removed where they are thinnest: a bridge cut, a tunnel filled.
+"""Handles of the lumen removed where they are thinnest: a bridge cut, a tunnel filled; its cavities filled.
 
 A vessel tree has no handles (genus 0).  A segmentation gains one where two vessels, or two limbs of a looped
 artery, lie closer than the image resolves: the front crosses the partial-volume gap between them and closes a
@@ -18,6 +18,10 @@ and adds no component: a cut that would split the tree, through a stenosis' thro
 The Euler characteristic, which a piece that removes a handle raises by one and which is a sum of local terms,
 screens all pieces at once (``euler_changes``); the global count (``metrics.topology``) confirms.
 
+A lumen also holds no enclosed void, but a front grown around a dark noise blob encloses one; a single voxel
+at the axis halves the inscribed radius there, and the stenosis grading reads it as a throat.  ``cavities``
+finds them, for the lumen to take.
+
 Topology alone does not tell a bridge from a throat in the same loop: where a stenosis within the loop is
 thinner than the bridge, the throat is cut instead.  Every change is reported with its place and size, for
 review.
@@ -33,6 +37,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from carotid.segment.intensity import region_box
 from carotid.segment.metrics import NEIGHBOURS_26, topology
 
 
@@ -189,3 +194,23 @@ def remove_handles(inside: np.ndarray, spacing_kji, max_mm: float) -> tuple[np.n
     for change in changes:
         change["centre_kji"] = change["centre_kji"] + offset
     return out, changes
+
+
+def cavities(inside: np.ndarray, spacing_kji) -> np.ndarray:
+    """The lumen's enclosed voids: background not connected (6-connected) to the background around the lumen.
+
+    Parameters
+    ----------
+    inside : ndarray of bool, shape (nk, nj, ni)
+    spacing_kji : array_like, shape (3,)
+
+    Returns
+    -------
+    ndarray of bool, same shape
+    """
+    out = np.zeros(inside.shape, bool)
+    # Within the lumen's box grown by a voxel, whose shell is background connected around it.
+    box = region_box(inside, spacing_kji, float(np.max(spacing_kji)))
+    if box is not None:
+        out[box] = ndimage.binary_fill_holes(inside[box]) & ~inside[box]
+    return out

@@ -22,7 +22,7 @@ from carotid.segment.barrier import (chamber_cores, chamber_neck, companion_basi
                                      half_level_barrier, half_maximum_speed, point_mask, under_enhanced)
 from carotid.segment.calcium import hyperdense_edge
 from carotid.segment.deblur import model_blur, reach_mm, refine
-from carotid.segment.handles import remove_handles
+from carotid.segment.handles import cavities, remove_handles
 from carotid.segment.init import automatic_region, check_points, mask_levelset, seed_levelset, seed_sample
 from carotid.segment.intensity import (VALIDATED_CONTRAST_TO_NOISE, IntensityModel, estimate_from_sample,
                                        local_level, local_radius, lumen_noise, provisional_window,
@@ -406,8 +406,12 @@ def deblur(image: np.ndarray, phi: np.ndarray, spacing_kji, model: IntensityMode
 
 
 def lumen_levelset(phi: np.ndarray, stopped: np.ndarray | None, seeds_kji: np.ndarray | None, spacing_kji,
-                   params: SegmentParameters) -> tuple[np.ndarray, np.ndarray, list[dict]]:
-    """The lumen from the refined front: neighbours held out, the seeds' components kept, handles removed.
+                   params: SegmentParameters) -> tuple[np.ndarray, np.ndarray, list[dict], dict]:
+    """The lumen from the refined front: neighbours held out, the seeds' components kept, cavities filled
+    (``handles.cavities``), handles removed.
+
+    Held-out voxels the lumen encloses are filled too: an enclosed neighbour is a dark noise pit taken for an
+    under-enhanced plateau's core (``barrier.under_enhanced``), not a neighbour.
 
     Parameters
     ----------
@@ -427,15 +431,21 @@ def lumen_levelset(phi: np.ndarray, stopped: np.ndarray | None, seeds_kji: np.nd
     mask : ndarray, uint8, same shape
     handles_removed : list of dict
         ``handles.remove_handles``' report.
+    cavities_filled : dict
+        ``count`` and ``volume_mm3`` of the cavities filled.
     """
     inside = phi < 0
     if stopped is not None:
         inside &= ~stopped
     inside = keep_components(inside, seeds_kji, spacing_kji)
+    voids = cavities(inside, spacing_kji)
+    inside |= voids
     inside, handles_removed = remove_handles(inside, spacing_kji, params.handle_mm)
     phi = np.where(inside, np.minimum(phi, -1e-3), np.maximum(phi, 0)).astype(np.float32)
     phi = signed_distance(phi, spacing_kji, params.far_mm)
-    return phi, (phi < 0).astype(np.uint8), handles_removed
+    filled = {"count": int(ndimage.label(voids)[1]),
+              "volume_mm3": float(np.count_nonzero(voids) * np.prod(spacing_kji))}
+    return phi, (phi < 0).astype(np.uint8), handles_removed, filled
 
 
 def chambers(phi: np.ndarray, image01: np.ndarray, window, model: IntensityModel, spacing_kji,
@@ -700,7 +710,7 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
             np.percentile(level[inside], [5, 50, 95]).tolist() if inside.any() else None)
 
     t2 = time.perf_counter()
-    phi, mask, handles_removed = lumen_levelset(phi, stopped, seeds_kji, spacing, params)
+    phi, mask, handles_removed, cavities_filled = lumen_levelset(phi, stopped, seeds_kji, spacing, params)
     timings["distance_s"] = time.perf_counter() - t2
     noise = lumen_noise(source, phi < -(2.0 * (model.blur or 0.0) + float(spacing.max())),
                         model.lumen if level is None else level)
@@ -735,6 +745,7 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
         "seconds": timings,
         "lumen_volume_mm3": float(mask.sum() * np.prod(spacing)),
         "topology": topology(mask > 0),
+        "cavities_filled": cavities_filled,
         "handles_removed": [{**{k: v for k, v in change.items() if k != "centre_kji"},
                              "centre_mm": volume.index_to_world(change["centre_kji"]).round(1).tolist()}
                             for change in handles_removed],
