@@ -17,6 +17,7 @@ topological.
 from __future__ import annotations
 
 import numpy as np
+from scipy import ndimage
 
 from carotid.centerline.axes import (WallDistance, recentre, section_areas, section_profile, section_radii,
                                     smooth_axis, straighten_border_end, trim_open_end)
@@ -27,6 +28,38 @@ from carotid.centerline.model import Branch, Centerlines
 from carotid.centerline.skeleton import largest_component, skeletonize_lumen
 from carotid.errors import CarotidError
 from carotid.io import Volume
+
+
+def without_voids(levelset: Volume, lumen: np.ndarray) -> Volume:
+    """The level set with the voids it encloses within the lumen set just inside (-1 um).
+
+    A void of one voxel at a vessel's axis (a segmentation grown around a dark noise pit) is a second wall to
+    the inscribed spheres and the sections: the radius there halves, and the grading reads a throat.  The
+    skeleton's lumen has its cavities filled (``skeleton.largest_component``); so are the radii's.
+
+    Parameters
+    ----------
+    levelset : Volume
+        Negative inside.
+    lumen : ndarray of bool, the level set's shape
+        The lumen component, cavities filled.
+
+    Returns
+    -------
+    Volume
+        ``levelset`` itself when it encloses no void.
+    """
+    found = ndimage.find_objects(lumen.astype(np.uint8))
+    if not found or found[0] is None:
+        return levelset
+    box = tuple(slice(max(s.start - 1, 0), s.stop + 1) for s in found[0])
+    inside = lumen[box] & (np.asarray(levelset.array[box]) < 0)
+    voids = ndimage.binary_fill_holes(inside) & ~inside
+    if not voids.any():
+        return levelset
+    phi = np.array(levelset.array, np.float32, copy=True)
+    phi[box][voids] = -1e-3
+    return levelset.with_array(phi)
 
 
 def compute_centerlines(levelset: Volume, mask: Volume | None = None, *, prune: float = 2.0,
@@ -76,6 +109,8 @@ def compute_centerlines(levelset: Volume, mask: Volume | None = None, *, prune: 
     inside = (mask.array > 0) if mask is not None else (phi < 0)
     spacing_kji = levelset.spacing_kji
     lumen, report = largest_component(inside, float(np.prod(spacing_kji)))
+    levelset = without_voids(levelset, lumen)
+    phi = levelset.array
     r_max = float(max(-phi[lumen].min(), spacing_kji.max()))
     skel = skeletonize_lumen(lumen, spacing_kji, extend_mm=2.0 * r_max)
 
