@@ -107,7 +107,7 @@ def test_cavities_are_the_enclosed_voids_and_not_the_pockets():
     """A tube running out of the image with a void at its axis and a pocket open through a 0.8 mm neck: the void
     is a cavity, the pocket and the background at the image's ends are not."""
     points = grid()
-    z, y, x = points
+    _, y, x = points
     void = rod(points, (0, 0, 0), (0, 0, 0.01), 0.7)
     pocket = rod(points, (8, 0, 0), (8, 0, 0.01), 2.0) | rod(points, (8, 0, 0), (8, 0, 5), 0.4)
     tube = np.hypot(y, x) <= 4.0

@@ -155,7 +155,7 @@ def test_lumen_levelset_holds_out_neighbours_keeps_the_seeded_tree_and_cuts_a_br
     phi = (ndimage.distance_transform_edt(~front, sampling=SPACING)
            - ndimage.distance_transform_edt(front, sampling=SPACING)).astype(np.float32)
     seed = np.argwhere(rod(points, (7.9, 0, -3.5), (8.1, 0, -3.5), 0.3)).mean(axis=0)[None]
-    out, mask, changes, cavities = lumen_levelset(phi, vein, seed, SPACING, SegmentParameters())
+    out, mask, changes, _ = lumen_levelset(phi, vein, seed, SPACING, SegmentParameters())
     assert np.array_equal(mask > 0, out < 0)
     assert topology(mask > 0) == {"components": 1, "handles": 0}
     assert [c["kind"] for c in changes] == ["cut"]
@@ -178,8 +178,8 @@ def test_lumen_levelset_fills_the_cavities_a_front_or_a_held_out_pit_leaves():
 
     points = grid()
     tube = rod(points, (-16, 0, 0), (16, 0, 0), 3.0)
-    distance = np.stack(points, axis=-1)
-    pit, held, seed = (np.unravel_index(np.argmin(np.linalg.norm(distance - [z, 0, 0], axis=-1)), tube.shape)
+    position = np.stack(points, axis=-1)
+    pit, held, seed = (np.unravel_index(np.argmin(np.linalg.norm(position - [z, 0, 0], axis=-1)), tube.shape)
                        for z in (0.0, 3.0, -8.0))
     front = tube.copy()
     front[pit] = False
