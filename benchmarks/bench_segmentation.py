@@ -99,6 +99,7 @@ from carotid.centerline.axes import section_profile, section_radii
 from carotid.errors import CarotidError
 from carotid.io import Volume, read_image
 from carotid.phantom import make_phantom
+from carotid.phantom.ct import LABELS
 from carotid.phantom.family import sample_family
 from carotid.segment import SegmentParameters, segment
 from carotid.segment.intensity import VALIDATED_CONTRAST_TO_NOISE
@@ -271,6 +272,14 @@ def narrowest_ica_diameter(phantom) -> float:
     return 2.0 * float(ica.radii[inside].min())
 
 
+def calcium_in_lumen(inside: np.ndarray, phantom) -> float | None:
+    """Fraction of the phantom's calcium voxels inside a segmented lumen ``inside`` (bool, the image's shape);
+    None without calcium.  Calcium taken for lumen fills the plaque's notch, whatever Dice says."""
+    calcium = phantom.labels.array == LABELS["calcium"]
+    count = int(np.count_nonzero(calcium))
+    return None if count == 0 else float(np.count_nonzero(inside & calcium) / count)
+
+
 def score(run: dict, phantom, truth_grade: dict) -> dict:
     """Dice, distances, leak, and the NASCET / minimal-diameter errors of one run against the phantom's truth."""
     levelset = run["levelset"]
@@ -280,6 +289,7 @@ def score(run: dict, phantom, truth_grade: dict) -> dict:
     voxels = int(inside.sum())
     out.update(status="ok", voxels=voxels, dice=dice(inside, truth_mask),
                leak_fraction=float(np.count_nonzero(inside & (truth_sdf > LEAK_MM)) / max(voxels, 1)),
+               calcium_in_lumen=calcium_in_lumen(inside, phantom),
                extra_handles=topology(inside)["handles"] - topology(truth_mask)["handles"])
     if voxels == 0:
         out.update(status="failed", error="empty segmentation")

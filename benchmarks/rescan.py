@@ -60,7 +60,7 @@ def run_case(seed: int, draws: int, overrides: dict, modality: str | None = None
         run = run_carotid(phantom.image, branch_seeds(phantom), SegmentParameters(**overrides))
         scored = score(run, phantom, truth)
         case["draws"].append({"noise_seed": draw or None, "cavities_filled": run["cavities_filled"],
-                              **{k: scored.get(k) for k in ("dice", "leak_fraction", *FIGURES)}})
+                              **{k: scored.get(k) for k in ("dice", "leak_fraction", "calcium_in_lumen", *FIGURES)}})
         log(f"case {seed:2d} draw {draw}: NASCET {_fmt(scored.get(FIGURES[0]), '+.1f')} points, "
             f"minimal diameter {_fmt(scored.get(FIGURES[1]), '+.2f')} mm, Dice {scored['dice']:.3f}")
     case.update(split(case["draws"]))

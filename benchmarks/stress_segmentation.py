@@ -90,8 +90,8 @@ def run(seed: int, variant: str, stop: bool, overrides: dict) -> dict:
     result = score(run_carotid(phantom.image, branch_seeds(phantom), SegmentParameters(**overrides), stops),
                    phantom, truth)
     record.update({k: v for k, v in result.items() if k in (
-        "status", "error", "grading_error", "dice", "leak_fraction", "nascet_error_points", "min_diameter_error_mm",
-        "surface_mean_mm", "surface_max_mm", "seconds", "cavities_filled")})
+        "status", "error", "grading_error", "dice", "leak_fraction", "calcium_in_lumen", "nascet_error_points",
+        "min_diameter_error_mm", "surface_mean_mm", "surface_max_mm", "seconds", "cavities_filled")})
     log(f"{variant}{' + stop' if stop else ''} seed {seed}: Dice {record.get('dice', float('nan')):.3f}, leak "
         f"{100 * record.get('leak_fraction', float('nan')):.1f} %")
     return record
