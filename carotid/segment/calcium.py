@@ -77,9 +77,10 @@ def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: flo
     sigma_mm : float
         Gaussian smoothing (mm) of the image on which the decisions are taken; at least half the coarsest
         voxel, so that single noisy voxels of a coarse scan are not taken for calcium.
-    lumen_region : (box, bright), optional
-        A box of the image (tuple of slices) and the lumen's bright region in it (bool, the box's shape), on
-        whose core the lumen level is followed along the vessel (``followed_top``).
+    lumen_region : (box, bright, sample), optional
+        A box of the image (tuple of slices), the lumen's bright region in it and the voxels known to be lumen
+        (bool, the box's shape): the lumen level is followed along the vessel on the bright region's core
+        (``followed_top``).
     margin : float
         With ``lumen_region``: also hyperdense is what exceeds the followed lumen level by this fraction of the
         local contrast (and by ``NOISE_SDS`` noise SDs); 0: ``top`` alone.
@@ -171,15 +172,18 @@ def followed_top(image: np.ndarray, smooth: np.ndarray, lumen_region: tuple, top
     (and an MR bias field moves); only noise takes a smoothed lumen voxel above it.  ``A(x)`` is the
     Gaussian-weighted mean (``FOLLOW_MM``, ``intensity.local_level``) of the lumen's core: the bright region
     more than two blur widths (and a voxel) inside its edge and two blur widths clear of anything above
-    ``top``, whose own blur would raise it.  The top is then ``min(top, A(x) + max(margin (A(x) - B),
-    NOISE_SDS s))``, ``s`` the robust SD of the smoothed core about ``A(x)``.
+    ``top`` (whose blur would raise it), in the components that hold a known lumen voxel.  An enhancing vein
+    touching the artery, or a vertebra's marrow within its cortex, is part of the bright region, but its
+    core is apart, and its level would lower the artery's.  The top is then ``min(top, A(x) + max(margin (A(x) - B), NOISE_SDS s))``, ``s`` the
+    robust SD of the smoothed core about ``A(x)``.
 
     Parameters
     ----------
     image, smooth : ndarray, shape (nk, nj, ni)
         The image and its lightly smoothed copy (``hyperdense_edge``'s ``sigma_mm``).
-    lumen_region : (box, bright)
-        Box of the image (tuple of slices) and the lumen's bright region in it (bool, the box's shape).
+    lumen_region : (box, bright, sample)
+        Box of the image (tuple of slices), the lumen's bright region in it and the voxels known to be lumen
+        (bool, the box's shape).
     top, lumen, background : float
         Window top, lumen level ``A`` at the seeds and tissue level ``B``.
     spacing_kji : array_like, shape (3,)
@@ -194,7 +198,7 @@ def followed_top(image: np.ndarray, smooth: np.ndarray, lumen_region: tuple, top
         Followed within the box, the numbers given outside it; the numbers given when the core holds fewer
         than ``MIN_CORE`` voxels.
     """
-    box, bright = lumen_region
+    box, bright, sample = lumen_region
     spacing = np.asarray(spacing_kji, float)
     inner = region_box(bright, spacing, float(spacing.max()))
     if inner is None:
@@ -205,6 +209,9 @@ def followed_top(image: np.ndarray, smooth: np.ndarray, lumen_region: tuple, top
     if lit.any():
         near = region_box(lit, spacing, 2.0 * blur_mm)
         core[near] &= ndimage.distance_transform_edt(~lit[near], sampling=spacing) > 2.0 * blur_mm
+    labels, _ = ndimage.label(core)
+    held = np.unique(labels[sample & core])
+    core = np.isin(labels, held[held > 0])
     if np.count_nonzero(core) < MIN_CORE:
         return top, lumen
     level = local_level(image[box], core, spacing, FOLLOW_MM, lumen)

@@ -655,7 +655,7 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
     hyperdense, dense = None, None
     if params.calcium_edge:
         image, dense, hyperdense = hyperdense_edge(image, window[1], model.lumen, model.background, spacing,
-                                                   model.blur, lumen_region=(model.box, model.bright),
+                                                   model.blur, lumen_region=(model.box, model.bright, sample[model.box]),
                                                    margin=params.calcium_margin)
     stops = None
     if stops_xyz is not None and len(stops_xyz):
