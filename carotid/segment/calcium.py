@@ -17,21 +17,22 @@ things then go wrong for a lumen segmentation:
 
 ``hyperdense_edge`` removes both.  Calcified structures are found above the
 window top (on a lightly smoothed image, so that noise in the lumen is never
-taken for calcium), or above the lumen level followed along the vessel
+taken for calcium) or, in CT, above the lumen level followed along the vessel
 (``followed_top``): a small calcification blurred by 0.6-0.8 mm keeps only
 10-30 % of its excess over the lumen, and one of 600-800 HU next to a 350-550
 HU lumen stays below a window top that must clear the whole vessel's lumen,
 whose bolus fades by 20-30 % from the CCA to the distal ICA; the lumen's own
-level, measured on its core within 10 mm, does not fade under it.  Their extent is where a marker watershed (scikit-image)
-on the gradient magnitude, between the calcium cores and the lumen-level and
-tissue-level voxels around them, puts it: on the steepest edge, which for a
-blurred step is the half-way level, towards the lumen and towards the tissue
-alike.  Its blur, a Gaussian of the image's own width (``intensity.edge_blur``)
-times an amplitude fitted on its tissue side, is subtracted from the image,
-so that the lumen next to it keeps only its own intensity; the structure
-itself becomes background, except within two blur widths of its edge, where
-what remains after the subtraction (the lumen's own blur, at most half its
-contrast) is kept, so that the lumen's edge stays where the two meet.  In an MR angiogram
+level, measured on its core within 10 mm, fades with it.  Their extent is
+where a marker watershed (scikit-image) on the gradient magnitude, between the
+calcium cores and the lumen-level and tissue-level voxels around them, puts
+it: on the steepest edge, which for a blurred step is the half-way level,
+towards the lumen and towards the tissue alike.  Its blur, a Gaussian of the
+image's own width (``intensity.edge_blur``) times an amplitude fitted on its
+tissue side, is subtracted from the image, so that the lumen next to it keeps
+only its own intensity; the structure itself becomes background, except
+within two blur widths of its edge, where what remains after the subtraction
+(the lumen's own blur, at most half its contrast) is kept, so that the lumen's
+edge stays where the two meet.  In an MR angiogram
 calcium and bone are dark and nothing lies above the window: nothing changes.
 
 Written here because no library offers this step; the filters are scipy's and
@@ -145,7 +146,8 @@ def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: flo
         # to half the contrast at a shared edge): what remains after the subtraction, kept below the half level.
         rim = np.zeros(image.shape, bool)
         rim[box] = extent[box] & (ndimage.distance_transform_edt(extent[box], sampling=spacing_kji) < 2.0 * blur_mm)
-        remains = np.clip(crop - blurred, np.float32(background), np.float32(0.5) * (_at(lumen, wide) + np.float32(background)))
+        half = np.float32(0.5) * (_at(lumen, wide) + np.float32(background))
+        remains = np.clip(crop - blurred, np.float32(background), half)
         local = np.where(inside, np.where(rim[wide], remains, local), crop - blurred)
         amplitude_max = float(amplitude.max())
     out = image.copy()
@@ -161,7 +163,8 @@ def _at(value, box: tuple):
 
 def tissue_ceiling(lumen, background: float):
     """Intensity below which a lightly smoothed voxel is tissue: ``B + TISSUE_FRACTION (A - B)``."""
-    return np.float32(background) + np.float32(TISSUE_FRACTION) * (np.asarray(lumen, np.float32) - np.float32(background))
+    b = np.float32(background)
+    return b + np.float32(TISSUE_FRACTION) * (np.asarray(lumen, np.float32) - b)
 
 
 def followed_top(image: np.ndarray, smooth: np.ndarray, lumen_region: tuple, top: float, lumen: float,
@@ -174,8 +177,9 @@ def followed_top(image: np.ndarray, smooth: np.ndarray, lumen_region: tuple, top
     more than two blur widths (and a voxel) inside its edge and two blur widths clear of anything above
     ``top`` (whose blur would raise it), in the components that hold a known lumen voxel.  An enhancing vein
     touching the artery, or a vertebra's marrow within its cortex, is part of the bright region, but its
-    core is apart, and its level would lower the artery's.  The top is then ``min(top, A(x) + max(margin (A(x) - B), NOISE_SDS s))``, ``s`` the
-    robust SD of the smoothed core about ``A(x)``.
+    core is apart, and its level would lower the artery's.  The top is then
+    ``min(top, A(x) + max(margin (A(x) - B), NOISE_SDS s))``, ``s`` the robust SD of the smoothed core about
+    ``A(x)``.
 
     Parameters
     ----------

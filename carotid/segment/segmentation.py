@@ -25,7 +25,7 @@ from carotid.segment.deblur import model_blur, reach_mm, refine
 from carotid.segment.handles import cavities, remove_handles
 from carotid.segment.init import automatic_region, check_points, mask_levelset, seed_levelset, seed_sample
 from carotid.segment.intensity import (VALIDATED_CONTRAST_TO_NOISE, IntensityModel, estimate_from_sample,
-                                       local_level, local_radius, lumen_noise, provisional_window,
+                                       in_hounsfield_units, local_level, local_radius, lumen_noise, provisional_window,
                                        through_plane_variance)
 from carotid.segment.levelset import evolve, signed_distance
 from carotid.segment.metrics import topology
@@ -63,10 +63,12 @@ class SegmentParameters:
         lumen next to a calcification (too tight a calcified stenosis) and whose blur on the tissue side
         looks like lumen (a leak into a vertebra, too mild a calcified stenosis).
     calcium_margin : float
-        With ``calcium_edge``, also hyperdense is what exceeds the lumen level followed along the vessel by this
-        fraction of the local contrast (and by four noise SDs; ``calcium.followed_top``), not only what exceeds
-        the window top: a small calcification's blurred peak can stay below a top that clears the whole
-        vessel's lumen, and the front then takes it for lumen.  0: the window top alone.
+        With ``calcium_edge``, in a CT (``intensity.in_hounsfield_units``), also hyperdense is what exceeds the
+        lumen level followed along the vessel by this fraction of the local contrast (and by four noise SDs;
+        ``calcium.followed_top``), not only what exceeds the window top: a small calcification's blurred peak
+        can stay below a top that clears the whole vessel's lumen, and the front then takes it for lumen.  In
+        an MR angiogram calcium is dark, and what is brighter than the artery beside it is a vein under the
+        bias field.  0: the window top alone.
     barrier : float
         Half level of the barrier (``barrier.half_level_barrier``): voxels darker than this fraction of the
         brightest lumen-like value within ``barrier_reach_mm`` push the front out (a blurred gap to an enhancing
@@ -654,9 +656,10 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
     window = lumen_window(model, params)
     hyperdense, dense = None, None
     if params.calcium_edge:
+        margin = params.calcium_margin if in_hounsfield_units(image) else 0.0
+        region = (model.box, model.bright, sample[model.box])
         image, dense, hyperdense = hyperdense_edge(image, window[1], model.lumen, model.background, spacing,
-                                                   model.blur, lumen_region=(model.box, model.bright, sample[model.box]),
-                                                   margin=params.calcium_margin)
+                                                   model.blur, lumen_region=region, margin=margin)
     stops = None
     if stops_xyz is not None and len(stops_xyz):
         stops_xyz = np.atleast_2d(np.asarray(stops_xyz, float))
