@@ -17,22 +17,16 @@ things then go wrong for a lumen segmentation:
 
 ``hyperdense_edge`` removes both.  Calcified structures are found above the
 window top (on a lightly smoothed image, so that noise in the lumen is never
-taken for calcium) or, in CT, above the lumen level followed along the vessel
-(``followed_top``): a small calcification blurred by 0.6-0.8 mm keeps only
-10-30 % of its excess over the lumen, and one of 600-800 HU next to a 350-550
-HU lumen stays below a window top that must clear the whole vessel's lumen,
-whose bolus fades by 20-30 % from the CCA to the distal ICA; the lumen's own
-level, measured on its core within 10 mm, fades with it.  Their extent is
-where a marker watershed (scikit-image) on the gradient magnitude, between the
-calcium cores and the lumen-level and tissue-level voxels around them, puts
-it: on the steepest edge, which for a blurred step is the half-way level,
-towards the lumen and towards the tissue alike.  Its blur, a Gaussian of the
-image's own width (``intensity.edge_blur``) times an amplitude fitted on its
-tissue side, is subtracted from the image, so that the lumen next to it keeps
-only its own intensity; the structure itself becomes background, except
-within two blur widths of its edge, where what remains after the subtraction
-(the lumen's own blur, at most half its contrast) is kept, so that the lumen's
-edge stays where the two meet.  In an MR angiogram
+taken for calcium); their extent is where a marker watershed (scikit-image)
+on the gradient magnitude, between the calcium cores and the lumen-level and
+tissue-level voxels around them, puts it: on the steepest edge, which for a
+blurred step is the half-way level, towards the lumen and towards the tissue
+alike.  Its blur, a Gaussian of the image's own width (``intensity.edge_blur``)
+times an amplitude fitted on its tissue side, is subtracted from the image,
+so that the lumen next to it keeps only its own intensity; the structure
+itself becomes background, except within two blur widths of its edge, where
+what remains after the subtraction (the lumen's own blur, at most half its
+contrast) is kept, so that the lumen's edge stays where the two meet.  In an MR angiogram
 calcium and bone are dark and nothing lies above the window: nothing changes.
 
 Written here because no library offers this step; the filters are scipy's and
@@ -45,22 +39,17 @@ import numpy as np
 from scipy import ndimage
 from skimage.segmentation import watershed
 
-from carotid.segment.intensity import local_level, region_box, robust_level
+from carotid.segment.intensity import region_box
 from carotid.segment.preprocess import gaussian_filter
 
 TISSUE, LUMEN, STRUCTURE = 1, 2, 3
 # Tissue level: below the background plus this fraction of the lumen's contrast (lightly smoothed image).
 TISSUE_FRACTION = 0.25
-# followed_top: the lumen level's scale along the vessel (mm), the noise SDs of the smoothed lumen a
-# hyperdense voxel exceeds it by at least, and the fewest core voxels to measure the level on.
-FOLLOW_MM = 10.0
-NOISE_SDS = 4.0
-MIN_CORE = 100
 
 
 def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: float, spacing_kji,
-                    blur_mm: float | None, reach_mm: float = 3.0, sigma_mm: float = 0.5,
-                    lumen_region: tuple | None = None, margin: float = 0.0) -> tuple[np.ndarray, np.ndarray, dict]:
+                    blur_mm: float | None, reach_mm: float = 3.0,
+                    sigma_mm: float = 0.5) -> tuple[np.ndarray, np.ndarray, dict]:
     """The image with each hyperdense structure (calcium, bone) and its blur replaced by the background.
 
     Parameters
@@ -78,13 +67,6 @@ def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: flo
     sigma_mm : float
         Gaussian smoothing (mm) of the image on which the decisions are taken; at least half the coarsest
         voxel, so that single noisy voxels of a coarse scan are not taken for calcium.
-    lumen_region : (box, bright, sample), optional
-        A box of the image (tuple of slices), the lumen's bright region in it and the voxels known to be lumen
-        (bool, the box's shape): the lumen level is followed along the vessel on the bright region's core
-        (``followed_top``).
-    margin : float
-        With ``lumen_region``: also hyperdense is what exceeds the followed lumen level by this fraction of the
-        local contrast (and by ``NOISE_SDS`` noise SDs); 0: ``top`` alone.
 
     Returns
     -------
@@ -99,10 +81,7 @@ def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: flo
     sigma_mm = max(sigma_mm, 0.5 * float(spacing_kji.max()))
     image = np.asarray(image, np.float32)
     smooth = gaussian_filter(image, sigma_mm / spacing_kji)
-    if margin > 0 and lumen_region is not None:
-        top, lumen = followed_top(image, smooth, lumen_region, top, lumen, background, spacing_kji,
-                                  blur_mm or sigma_mm, margin)
-    hot = smooth > top
+    hot = smooth > np.float32(top)
     if not hot.any():
         return image, hot, {"structures": 0, "volume_mm3": 0.0, "blur_amplitude_max": 0.0}
     # Distances to the structures only where they can reach (the transform of a whole 256^3 image with a
@@ -116,11 +95,11 @@ def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: flo
     clear = distance[tuple(slice(b.start - o.start, b.stop - o.start) for b, o in zip(box, outer))] > 2.0 * (
         blur_mm or sigma_mm)
     regions = np.zeros(image.shape, np.int8)
-    regions[box] = structure_regions(image[box], smooth[box], hot[box], near[box], clear, _at(lumen, box),
-                                     background, spacing_kji, sigma_mm)
+    regions[box] = structure_regions(image[box], smooth[box], hot[box], near[box], clear, lumen, background,
+                                     spacing_kji, sigma_mm)
     del distance
     extent = regions == STRUCTURE
-    tissue = near[box] & (smooth[box] < tissue_ceiling(_at(lumen, box), background))
+    tissue = near[box] & (smooth[box] < np.float32(background + TISSUE_FRACTION * (lumen - background)))
     extent[box] = in_the_wall(extent[box], tissue, spacing_kji, reach_mm)
     del tissue
     amplitude_max = 0.0
@@ -146,86 +125,13 @@ def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: flo
         # to half the contrast at a shared edge): what remains after the subtraction, kept below the half level.
         rim = np.zeros(image.shape, bool)
         rim[box] = extent[box] & (ndimage.distance_transform_edt(extent[box], sampling=spacing_kji) < 2.0 * blur_mm)
-        half = np.float32(0.5) * (_at(lumen, wide) + np.float32(background))
-        remains = np.clip(crop - blurred, np.float32(background), half)
+        remains = np.clip(crop - blurred, np.float32(background), np.float32(0.5 * (lumen + background)))
         local = np.where(inside, np.where(rim[wide], remains, local), crop - blurred)
         amplitude_max = float(amplitude.max())
     out = image.copy()
     out[wide] = local
     volume = float(np.count_nonzero(extent) * np.prod(spacing_kji))
     return out, extent, {"structures": int(n), "volume_mm3": volume, "blur_amplitude_max": amplitude_max}
-
-
-def _at(value, box: tuple):
-    """``value[box]`` for an array, ``np.float32(value)`` for a number."""
-    return value[box] if np.ndim(value) else np.float32(value)
-
-
-def tissue_ceiling(lumen, background: float):
-    """Intensity below which a lightly smoothed voxel is tissue: ``B + TISSUE_FRACTION (A - B)``."""
-    b = np.float32(background)
-    return b + np.float32(TISSUE_FRACTION) * (np.asarray(lumen, np.float32) - b)
-
-
-def followed_top(image: np.ndarray, smooth: np.ndarray, lumen_region: tuple, top: float, lumen: float,
-                 background: float, spacing_kji, blur_mm: float, margin: float):
-    """Window top and lumen level followed along the vessel: where a lumen voxel can be no brighter.
-
-    A blurred lumen is nowhere brighter than its own level ``A(x)``, which the bolus lowers along the vessel
-    (and an MR bias field moves); only noise takes a smoothed lumen voxel above it.  ``A(x)`` is the
-    Gaussian-weighted mean (``FOLLOW_MM``, ``intensity.local_level``) of the lumen's core: the bright region
-    more than two blur widths (and a voxel) inside its edge and two blur widths clear of anything above
-    ``top`` (whose blur would raise it), in the components that hold a known lumen voxel.  An enhancing vein
-    touching the artery, or a vertebra's marrow within its cortex, is part of the bright region, but its
-    core is apart, and its level would lower the artery's.  The top is then
-    ``min(top, A(x) + max(margin (A(x) - B), NOISE_SDS s))``, ``s`` the robust SD of the smoothed core about
-    ``A(x)``.
-
-    Parameters
-    ----------
-    image, smooth : ndarray, shape (nk, nj, ni)
-        The image and its lightly smoothed copy (``hyperdense_edge``'s ``sigma_mm``).
-    lumen_region : (box, bright, sample)
-        Box of the image (tuple of slices), the lumen's bright region in it and the voxels known to be lumen
-        (bool, the box's shape).
-    top, lumen, background : float
-        Window top, lumen level ``A`` at the seeds and tissue level ``B``.
-    spacing_kji : array_like, shape (3,)
-    blur_mm : float
-        The image's blur, mm.
-    margin : float
-        Fraction of the local contrast ``A(x) - B`` above ``A(x)``.
-
-    Returns
-    -------
-    top, lumen : ndarray, float32, image's shape, or the numbers given
-        Followed within the box, the numbers given outside it; the numbers given when the core holds fewer
-        than ``MIN_CORE`` voxels.
-    """
-    box, bright, sample = lumen_region
-    spacing = np.asarray(spacing_kji, float)
-    inner = region_box(bright, spacing, float(spacing.max()))
-    if inner is None:
-        return top, lumen
-    core = np.zeros(bright.shape, bool)
-    core[inner] = ndimage.distance_transform_edt(bright[inner], sampling=spacing) > max(2.0 * blur_mm, spacing.max())
-    lit = smooth[box] > np.float32(top)
-    if lit.any():
-        near = region_box(lit, spacing, 2.0 * blur_mm)
-        core[near] &= ndimage.distance_transform_edt(~lit[near], sampling=spacing) > 2.0 * blur_mm
-    labels, _ = ndimage.label(core)
-    held = np.unique(labels[sample & core])
-    core = np.isin(labels, held[held > 0])
-    if np.count_nonzero(core) < MIN_CORE:
-        return top, lumen
-    level = local_level(image[box], core, spacing, FOLLOW_MM, lumen)
-    noise = robust_level(smooth[box][core] - level[core])[1]
-    contrast = np.maximum(level - np.float32(background), np.float32(0.25 * (lumen - background)))
-    tops = np.full(image.shape, np.float32(top))
-    tops[box] = np.minimum(tops[box], level + np.maximum(np.float32(margin) * contrast, np.float32(NOISE_SDS * noise)))
-    levels = np.full(image.shape, np.float32(lumen))
-    levels[box] = level
-    return tops, levels
 
 
 def in_the_wall(extent: np.ndarray, tissue: np.ndarray, spacing_kji, reach_mm: float) -> np.ndarray:
@@ -254,29 +160,26 @@ def in_the_wall(extent: np.ndarray, tissue: np.ndarray, spacing_kji, reach_mm: f
 
 
 def structure_regions(image: np.ndarray, smooth: np.ndarray, hot: np.ndarray, near: np.ndarray, clear: np.ndarray,
-                      lumen, background: float, spacing_kji, sigma_mm: float) -> np.ndarray:
+                      lumen: float, background: float, spacing_kji, sigma_mm: float) -> np.ndarray:
     """Hyperdense structures up to their steepest edge, and what surrounds them.
 
     Markers: the cores (brighter than half-way between the lumen level and the structure's own peak), the
     lumen-level voxels (within 15 % of the contrast of ``lumen``) where ``clear`` of the structures' blur, and
     the tissue-level voxels (below a quarter of the contrast) within ``near``; a watershed on the gradient
-    magnitude grows them into ``near``.  Arrays share one shape (a box of the image); ``lumen`` is a number
-    or such an array (the level followed along the vessel, ``followed_top``): where the bolus has faded, a
-    fixed level leaves the lumen without markers, and the watershed gives it to the structure.
+    magnitude grows them into ``near``.  Arrays share one shape (a box of the image).
 
     Returns
     -------
     ndarray of int8
         ``STRUCTURE``, ``LUMEN`` or ``TISSUE`` within ``near``, 0 elsewhere.
     """
-    lumen = np.asarray(lumen, np.float32)
-    contrast = lumen - np.float32(background)
+    contrast = lumen - background
     labels, n = ndimage.label(hot)
     peaks = np.concatenate([[np.inf], ndimage.maximum(smooth, labels, np.arange(1, n + 1))]).astype(np.float32)
-    cores = hot & (smooth > np.float32(0.5) * (peaks[labels] + lumen))
+    cores = hot & (smooth > np.float32(0.5) * (peaks[labels] + np.float32(lumen)))
     markers = np.zeros(image.shape, np.int8)
-    markers[near & (smooth < tissue_ceiling(lumen, background))] = TISSUE
-    markers[near & clear & (np.abs(smooth - lumen) < np.float32(0.15) * contrast)] = LUMEN
+    markers[near & (smooth < np.float32(background + TISSUE_FRACTION * contrast))] = TISSUE
+    markers[near & clear & (np.abs(smooth - np.float32(lumen)) < np.float32(0.15 * contrast))] = LUMEN
     markers[cores] = STRUCTURE
     gradient = ndimage.gaussian_gradient_magnitude(image, sigma_mm / np.asarray(spacing_kji, float))
     return watershed(gradient, markers, mask=near).astype(np.int8)

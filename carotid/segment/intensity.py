@@ -533,15 +533,9 @@ def provisional_window(image: np.ndarray) -> tuple[float, float, float]:
     low, high, ceiling : float
         Window and the level above which voxels are not lumen (inf for MR).
     """
-    hi = float(np.percentile(_subsample(image), 99.9))
-    ceiling = CT_NOT_LUMEN_HU if in_hounsfield_units(image) else np.inf
+    lo, hi = np.percentile(_subsample(image), [0.5, 99.9])
+    ceiling = CT_NOT_LUMEN_HU if lo < 0.0 else np.inf
     return histogram_mode(image), float(min(hi, ceiling)), ceiling
-
-
-def in_hounsfield_units(image: np.ndarray) -> bool:
-    """Whether an image is a CT in Hounsfield units: its 0.5th percentile is negative (fat, air).  Magnitude
-    MR images are never negative, and in them calcium and bone are dark."""
-    return bool(np.percentile(_subsample(image), 0.5) < 0.0)
 
 
 def _subsample(image: np.ndarray) -> np.ndarray:

@@ -25,7 +25,7 @@ from carotid.segment.deblur import model_blur, reach_mm, refine
 from carotid.segment.handles import cavities, remove_handles
 from carotid.segment.init import automatic_region, check_points, mask_levelset, seed_levelset, seed_sample
 from carotid.segment.intensity import (VALIDATED_CONTRAST_TO_NOISE, IntensityModel, estimate_from_sample,
-                                       in_hounsfield_units, local_level, local_radius, lumen_noise, provisional_window,
+                                       local_level, local_radius, lumen_noise, provisional_window,
                                        through_plane_variance)
 from carotid.segment.levelset import evolve, signed_distance
 from carotid.segment.metrics import topology
@@ -62,14 +62,6 @@ class SegmentParameters:
         surroundings (``calcium`` module), instead of relying on the fold alone, whose edge lies inside the
         lumen next to a calcification (too tight a calcified stenosis) and whose blur on the tissue side
         looks like lumen (a leak into a vertebra, too mild a calcified stenosis).
-    calcium_margin : float
-        With ``calcium_edge``, in a CT (``intensity.in_hounsfield_units``), also hyperdense is what exceeds the
-        lumen level followed along the vessel by this fraction of the local contrast (and by four noise SDs;
-        ``calcium.followed_top``), not only what exceeds the window top: a small calcification's blurred peak
-        can stay below a top that clears the whole vessel's lumen, and the front then takes it for lumen.  In
-        an MR angiogram calcium is dark, and what is brighter than the artery beside it is a vein under the
-        bias field.  0 (the default): the window top alone; 0.1 keeps most such calcifications out of the
-        lumen but grades NASCET within 5 points on fewer family scans (``benchmarks/README.md``).
     barrier : float
         Half level of the barrier (``barrier.half_level_barrier``): voxels darker than this fraction of the
         brightest lumen-like value within ``barrier_reach_mm`` push the front out (a blurred gap to an enhancing
@@ -200,7 +192,6 @@ class SegmentParameters:
     level_mm: float = 10.0
     fold: float = 0.0
     calcium_edge: bool = True
-    calcium_margin: float = 0.0
     barrier: float = 0.5
     barrier_reach_mm: float = 3.0
     plateau: float = 0.8
@@ -264,7 +255,6 @@ class SegmentParameters:
             (len(self.window_margins) == 2 and min(self.window_margins) >= 0,
              "window_margins must be two fractions >= 0"),
             (self.level_mm >= 0 and self.fold >= 0, "level_mm and fold must not be negative"),
-            (0 <= self.calcium_margin < 1, "calcium_margin must lie in [0, 1)"),
             (0 <= self.barrier < 1 and self.barrier_reach_mm > 0, "barrier must lie in [0, 1), barrier_reach_mm > 0"),
             (0 <= self.half_maximum <= 1, "half_maximum must lie in [0, 1]"),
             (self.chamber_ratio == 0 or self.chamber_ratio > 1, "chamber_ratio must be 0 (off) or above 1"),
@@ -657,10 +647,8 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
     window = lumen_window(model, params)
     hyperdense, dense = None, None
     if params.calcium_edge:
-        margin = params.calcium_margin if in_hounsfield_units(image) else 0.0
-        region = (model.box, model.bright, sample[model.box])
         image, dense, hyperdense = hyperdense_edge(image, window[1], model.lumen, model.background, spacing,
-                                                   model.blur, lumen_region=region, margin=margin)
+                                                   model.blur)
     stops = None
     if stops_xyz is not None and len(stops_xyz):
         stops_xyz = np.atleast_2d(np.asarray(stops_xyz, float))
