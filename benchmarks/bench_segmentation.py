@@ -30,8 +30,9 @@ and case: Dice with the true lumen; mean, 95th percentile and maximum
 handles (``metrics.topology`` of the result minus the true lumen's: a bridge
 no leak measure sees, listed per method in the summary's ``handles``); the
 fraction of the phantom's calcium inside the result (calcium taken for lumen
-fills a plaque's notch at a cost of a few hundred voxels, which Dice hardly
-sees; the cases above half are listed in the summary); seconds; NASCET error (percentage points) = NASCET graded by
+makes a bump on the plaque at a cost of a few hundred voxels, which Dice
+hardly sees; the cases above half are listed in the summary); seconds;
+NASCET error (percentage points) = NASCET graded by
 ``compute_centerlines`` on the method's level set minus NASCET graded the same
 way on the true level set; minimal-diameter error (mm) = the graded minimal
 ICA diameter minus the analytic narrowest diameter of the phantom's ICA within
@@ -276,7 +277,7 @@ def narrowest_ica_diameter(phantom) -> float:
 
 def calcium_in_lumen(inside: np.ndarray, phantom) -> float | None:
     """Fraction of the phantom's calcium voxels inside a segmented lumen ``inside`` (bool, the image's shape);
-    None without calcium.  Calcium taken for lumen fills the plaque's notch, whatever Dice says."""
+    None without calcium.  Calcium taken for lumen makes a bump on the plaque, whatever Dice says."""
     calcium = phantom.labels.array == LABELS["calcium"]
     count = int(np.count_nonzero(calcium))
     return None if count == 0 else float(np.count_nonzero(inside & calcium) / count)

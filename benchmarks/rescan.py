@@ -59,8 +59,9 @@ def run_case(seed: int, draws: int, overrides: dict, modality: str | None = None
             case.update(truth=phantom.info["stenosis"], truth_graded=truth)
         run = run_carotid(phantom.image, branch_seeds(phantom), SegmentParameters(**overrides))
         scored = score(run, phantom, truth)
+        kept = ("dice", "leak_fraction", "calcium_in_lumen", *FIGURES)
         case["draws"].append({"noise_seed": draw or None, "cavities_filled": run["cavities_filled"],
-                              **{k: scored.get(k) for k in ("dice", "leak_fraction", "calcium_in_lumen", *FIGURES)}})
+                              **{k: scored.get(k) for k in kept}})
         log(f"case {seed:2d} draw {draw}: NASCET {_fmt(scored.get(FIGURES[0]), '+.1f')} points, "
             f"minimal diameter {_fmt(scored.get(FIGURES[1]), '+.2f')} mm, Dice {scored['dice']:.3f}")
     case.update(split(case["draws"]))
