@@ -101,8 +101,7 @@ from carotid.centerline import Branch, compute_centerlines, stenosis
 from carotid.centerline.axes import section_profile, section_radii
 from carotid.errors import CarotidError
 from carotid.io import Volume, read_image
-from carotid.phantom import make_phantom
-from carotid.phantom.ct import LABELS
+from carotid.phantom import LABELS, make_phantom
 from carotid.phantom.family import sample_family
 from carotid.segment import SegmentParameters, segment
 from carotid.segment.intensity import VALIDATED_CONTRAST_TO_NOISE
