@@ -44,6 +44,7 @@ from carotid.phantom.family import sample_family
 from carotid.segment import SegmentParameters
 
 FIGURES = ("nascet_error_points", "min_diameter_error_mm")
+RECORDED = ("dice", "leak_fraction", "calcium_in_lumen", *FIGURES)
 
 
 def run_case(seed: int, draws: int, overrides: dict, modality: str | None = None) -> dict:
@@ -59,9 +60,8 @@ def run_case(seed: int, draws: int, overrides: dict, modality: str | None = None
             case.update(truth=phantom.info["stenosis"], truth_graded=truth)
         run = run_carotid(phantom.image, branch_seeds(phantom), SegmentParameters(**overrides))
         scored = score(run, phantom, truth)
-        kept = ("dice", "leak_fraction", "calcium_in_lumen", *FIGURES)
         case["draws"].append({"noise_seed": draw or None, "cavities_filled": run["cavities_filled"],
-                              **{k: scored.get(k) for k in kept}})
+                              **{k: scored.get(k) for k in RECORDED}})
         log(f"case {seed:2d} draw {draw}: NASCET {_fmt(scored.get(FIGURES[0]), '+.1f')} points, "
             f"minimal diameter {_fmt(scored.get(FIGURES[1]), '+.2f')} mm, Dice {scored['dice']:.3f}")
     case.update(split(case["draws"]))
