@@ -17,7 +17,6 @@ topological.
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
 
 from carotid.centerline.axes import (WallDistance, recentre, section_areas, section_profile, section_radii,
                                     smooth_axis, straighten_border_end, trim_open_end)
@@ -28,6 +27,7 @@ from carotid.centerline.model import Branch, Centerlines
 from carotid.centerline.skeleton import largest_component, skeletonize_lumen
 from carotid.errors import CarotidError
 from carotid.io import Volume
+from carotid.segment.handles import cavities
 
 
 def without_voids(levelset: Volume, lumen: np.ndarray) -> Volume:
@@ -49,16 +49,11 @@ def without_voids(levelset: Volume, lumen: np.ndarray) -> Volume:
     Volume
         ``levelset`` itself when it encloses no void.
     """
-    found = ndimage.find_objects(lumen.astype(np.uint8))
-    if not found or found[0] is None:
-        return levelset
-    box = tuple(slice(max(s.start - 1, 0), s.stop + 1) for s in found[0])
-    inside = lumen[box] & (np.asarray(levelset.array[box]) < 0)
-    voids = ndimage.binary_fill_holes(inside) & ~inside
+    voids = cavities(lumen & (np.asarray(levelset.array) < 0), levelset.spacing_kji)
     if not voids.any():
         return levelset
     phi = np.array(levelset.array, np.float32, copy=True)
-    phi[box][voids] = -1e-3
+    phi[voids] = -1e-3
     return levelset.with_array(phi)
 
 
