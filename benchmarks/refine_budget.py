@@ -8,8 +8,8 @@ decides where the throat's wall ends up, and it rests on five things that
 can each be wrong: the lumen level ``A`` it follows along the vessel
 (``lumen_level``), the tissue level ``B`` around the wall
 (``normal_background``), the blur within the slices (``intensity.edge_blur``),
-the blur along the slice axis (``axis_blur``, from the slice spacing when
-the scan records no thickness), and its
+the blur along the slice axis (``axis_blur``, from the slice thickness
+measured on the image, ``intensity.through_plane_variance``), and its
 regularisation (the wall's speed smoothed by ``deblur_smooth_mm`` and
 stopped after ``deblur_iterations`` steps).  This script runs ``segment``
 once per family case, keeps the front the evolution converged to, and
@@ -140,8 +140,13 @@ def captured_segment(phantom, seeds_xyz) -> tuple[object, tuple]:
 
 def rerun(args: tuple, seeds_kji, thickness=None, levels=None, start=None, blur=None, **overrides) -> dict:
     """The refinement rerun on captured arguments (``thickness``, the ``levels`` pair, the ``start`` level set
-    and the in-plane ``blur`` replaced when given), then ``segment``'s lumen clean-up: a scorable run."""
-    image, phi, spacing, model, params, stopped, dense, _ = args
+    and the in-plane ``blur`` replaced when given), then ``segment``'s lumen clean-up: a scorable run.
+
+    Without ``thickness`` the rerun keeps the slice thickness ``segment`` gave its refinement (measured on the
+    image by default, ``measure_slice_blur``), so that a variant differs from the defaults only in what it
+    replaces."""
+    image, phi, spacing, model, params, stopped, dense, captured_thickness = args
+    thickness = captured_thickness if thickness is None else thickness
     params = replace(params, **overrides)
     model = model if blur is None else replace(model, blur=blur)
     phi = phi if start is None else start
