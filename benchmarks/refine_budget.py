@@ -27,6 +27,8 @@ phantom's truth:
 * ``true_model``: the true levels and both true blurs;
 * ``true_model_converged``: both, the speed unsmoothed and the descent run
   to convergence (100 steps of three times the step length);
+* ``from_truth``: the defaults started from the true wall instead of the
+  evolution's front (what the start alone decides);
 
 and the same on the case with its noise scaled by 0.02
 (``noise_free_defaults``, ``noise_free_true_model``,
@@ -185,10 +187,12 @@ def run_case(seed: int) -> dict:
         if prefix:
             runs["converged"] = lambda: rerun(args, seeds_kji, **CONVERGED)
             runs["true_z_blur_converged"] = lambda: rerun(args, seeds_kji, thickness, **CONVERGED)
+        sdf = np.asarray(phantom.sdf.array, np.float32)
+        if not prefix:
+            runs["from_truth"] = lambda: rerun(args, seeds_kji, start=sdf)
         runs["true_model"] = lambda: rerun(args, seeds_kji, thickness, levels, blur=blur)
         runs["true_model_converged"] = lambda: rerun(args, seeds_kji, thickness, levels, blur=blur, **CONVERGED)
         if prefix:
-            sdf = np.asarray(phantom.sdf.array, np.float32)
             runs["true_model_from_truth"] = lambda: rerun(args, seeds_kji, thickness, levels, sdf, blur,
                                                           **CONVERGED)
         for name, run in runs.items():
