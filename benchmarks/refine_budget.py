@@ -29,6 +29,10 @@ phantom's truth:
   to convergence (100 steps of three times the step length);
 * ``from_truth``: the defaults started from the true wall instead of the
   evolution's front (what the start alone decides);
+* ``linear_level``: the lumen level followed by a local linear fit
+  (``deblur_linear_level``) instead of a local mean, which lags a fading
+  bolus and reads the throat's lumen too bright;
+* ``from_truth_linear_level``: both, the start and the level;
 
 and the same on the case with its noise scaled by 0.02
 (``noise_free_defaults``, ``noise_free_true_model``,
@@ -190,6 +194,8 @@ def run_case(seed: int) -> dict:
         sdf = np.asarray(phantom.sdf.array, np.float32)
         if not prefix:
             runs["from_truth"] = lambda: rerun(args, seeds_kji, start=sdf)
+            runs["linear_level"] = lambda: rerun(args, seeds_kji, deblur_linear_level=True)
+            runs["from_truth_linear_level"] = lambda: rerun(args, seeds_kji, start=sdf, deblur_linear_level=True)
         runs["true_model"] = lambda: rerun(args, seeds_kji, thickness, levels, blur=blur)
         runs["true_model_converged"] = lambda: rerun(args, seeds_kji, thickness, levels, blur=blur, **CONVERGED)
         if prefix:
