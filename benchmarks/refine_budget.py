@@ -183,19 +183,18 @@ def run_case(seed: int) -> dict:
             case.update(modality=phantom.info["modality"], truth=phantom.info["stenosis"], truth_graded=truth,
                         recorded_thickness_mm=thickness,
                         blur_mm={"measured": args[3].blur, "in_plane": blur, "z": phantom.info["blur_sigma_mm"]["z"]})
+        sdf = np.asarray(phantom.sdf.array, np.float32)
         runs = {"defaults": lambda: {"levelset": result.levelset.array, "mask": result.mask.array > 0}}
         if not prefix:
             runs["true_z_blur"] = lambda: rerun(args, seeds_kji, thickness)
             runs["true_blur"] = lambda: rerun(args, seeds_kji, thickness, blur=blur)
             runs["true_levels"] = lambda: rerun(args, seeds_kji, levels=levels)
-        if prefix:
-            runs["converged"] = lambda: rerun(args, seeds_kji, **CONVERGED)
-            runs["true_z_blur_converged"] = lambda: rerun(args, seeds_kji, thickness, **CONVERGED)
-        sdf = np.asarray(phantom.sdf.array, np.float32)
-        if not prefix:
             runs["from_truth"] = lambda: rerun(args, seeds_kji, start=sdf)
             runs["linear_level"] = lambda: rerun(args, seeds_kji, deblur_linear_level=True)
             runs["from_truth_linear_level"] = lambda: rerun(args, seeds_kji, start=sdf, deblur_linear_level=True)
+        else:
+            runs["converged"] = lambda: rerun(args, seeds_kji, **CONVERGED)
+            runs["true_z_blur_converged"] = lambda: rerun(args, seeds_kji, thickness, **CONVERGED)
         runs["true_model"] = lambda: rerun(args, seeds_kji, thickness, levels, blur=blur)
         runs["true_model_converged"] = lambda: rerun(args, seeds_kji, thickness, levels, blur=blur, **CONVERGED)
         if prefix:
