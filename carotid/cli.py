@@ -44,6 +44,7 @@ def _segment_parameters(args):
         "refine_radius_mm": args.refine_radius, "denoise_iterations": args.denoise,
         "seed_radius_mm": args.seed_radius, "max_iterations": args.max_iterations,
         "chamber_ratio": args.chamber_ratio, "companion_depth": args.companion_depth, "handle_mm": args.handles,
+        "join_contrast": args.join_contrast,
         "wall_trunk_mm": args.wall_trunk, "slice_thickness_mm": args.slice_thickness,
         "measure_slice_blur": args.measure_slice_blur,
     }
@@ -260,6 +261,10 @@ def _add_segment_options(p: argparse.ArgumentParser) -> None:
                    help="a bright vessel running beside the seeded one, behind a gap that dips by at least C of the "
                         "lumen's contrast (a vein as bright as the artery), is kept out of the lumen; 0 keeps it "
                         "(default 0.05)")
+    p.add_argument("--join-contrast", type=float, metavar="C",
+                   help="seeds left in separate pieces (the front pinched at a string-sign stenosis) are joined "
+                        "along the minimal path through the image when it stays at C or more of the lumen's "
+                        "contrast all along; 0 never joins them (default 0.25)")
     p.add_argument("--handles", type=float, metavar="MM",
                    help="remove the lumen's handles (vessels bridged where the image does not resolve the gap "
                         "between them, tunnels through the mask) by cutting bridges or filling tunnels up to 2 MM "

@@ -21,6 +21,7 @@ from carotid.io import Volume, atomic_dir, write_image, write_json
 from carotid.segment.barrier import (chamber_cores, chamber_neck, companion_basins, competing_region,
                                      half_level_barrier, half_maximum_speed, point_mask, under_enhanced)
 from carotid.segment.calcium import hyperdense_edge
+from carotid.segment.join import join_seeds
 from carotid.segment.deblur import model_blur, reach_mm, refine
 from carotid.segment.handles import cavities, remove_handles
 from carotid.segment.init import automatic_region, check_points, mask_levelset, seed_levelset, seed_sample
@@ -97,6 +98,12 @@ class SegmentParameters:
         refining stage.  The potential's zero lies outside a curved, blurred wall and the half maximum inside
         it, both by about the blur squared times the curvature: their blend stays on a tight stenosis's wall.
         0: the paper's potential alone.
+    join_contrast : float
+        Where the seeds end the evolution in separate components (the front pinched at a long, tight stenosis
+        thinner than the blur: a string sign), join each to the first seed's along the minimal path through
+        the image if its smoothed intensity stays at or above this fraction of the lumen's contrast all along
+        and crosses no held-out neighbour, as a tube whose blurred axis matches that intensity
+        (``join.join_seeds``); an occlusion stays open.  0: off.
     deblur : bool
         Move the converged front to the wall of the blurred lumen model that best explains the image
         (``deblur`` module): an edge-based front lies inside a straight vessel's wall and outside a short,
@@ -199,6 +206,7 @@ class SegmentParameters:
     chamber_reach_mm: float = 20.0
     companion_depth: float = 0.05
     half_maximum: float = 0.5
+    join_contrast: float = 0.25
     deblur: bool = True
     deblur_iterations: int = 20
     deblur_gain: float = 2.0
@@ -257,6 +265,7 @@ class SegmentParameters:
             (self.level_mm >= 0 and self.fold >= 0, "level_mm and fold must not be negative"),
             (0 <= self.barrier < 1 and self.barrier_reach_mm > 0, "barrier must lie in [0, 1), barrier_reach_mm > 0"),
             (0 <= self.half_maximum <= 1, "half_maximum must lie in [0, 1]"),
+            (0 <= self.join_contrast < 1, "join_contrast must lie in [0, 1)"),
             (self.chamber_ratio == 0 or self.chamber_ratio > 1, "chamber_ratio must be 0 (off) or above 1"),
             (self.chamber_reach_mm > 0, "chamber_reach_mm must be positive"),
             (0 <= self.companion_depth < 1, "companion_depth must lie in [0, 1)"),
@@ -694,6 +703,10 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
             iterations[-1] += more
         converged.append(result.converged)
     del ghat, g, image01
+    joins = []
+    if params.join_contrast > 0 and seeds_kji is not None:
+        phi, joins = join_seeds(image, phi, seeds_kji, spacing, model.lumen, model.background,
+                                model.blur or float(np.max(spacing)), stopped, params.join_contrast)
     thickness, thickness_source = None, "no refinement"
     if params.deblur and model.blur:
         thickness, thickness_source = slice_thickness(volume, params, model)
@@ -740,6 +753,7 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
         "stops_mm": None if stops is None else np.asarray(stops_xyz).tolist(),
         "excluded_neighbour_mm3": 0.0 if stopped is None else float(np.count_nonzero(stopped) * np.prod(spacing)),
         "chambers": chamber_report,
+        "seed_joins": joins,
         "iterations": iterations,
         "converged": all(converged),
         "seconds": timings,
