@@ -36,7 +36,7 @@ from carotid.io import Volume
 
 EXTENT_MM = np.array([64.0, 40.0, 40.0])  # (z, y, x)
 FINE = 3  # fine grid: voxel / FINE in every direction
-CALCIUM_LABEL = 4
+CALCIUM_LABEL = 4  # carotid.phantom.LABELS["calcium"], which bench_segmentation.calcium_in_lumen reads
 
 
 @dataclass
@@ -144,7 +144,7 @@ def _line(a, b, step=0.2):
 
 
 def make_second_phantom(seed: int) -> SecondPhantom:
-    """Build case ``seed`` (see the module docstring); 10-60 s and up to 3 GB on the fine grid."""
+    """Build case ``seed`` (see the module docstring); 5-30 s and 1-3 GB on the fine grid."""
     p = draw(seed)
     hx, _, hz = p["spacing_xyz"]
     fz = int(np.ceil(FINE * hz / hx))

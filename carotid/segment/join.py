@@ -77,9 +77,9 @@ def join_seeds(image: np.ndarray, phi: np.ndarray, seeds_kji: np.ndarray, spacin
     out = np.array(phi, np.float32, copy=True)
     joins = []
     for number, label in enumerate(seed_labels.tolist()):
-        if label == 0 or joined[labels == label].any():
-            continue
         target = labels == label
+        if label == 0 or (joined & target).any():
+            continue
         box = _search_box(joined, target, spacing, margin_mm)
         path = _minimal_path(u[box], joined[box], target[box], spacing)
         along = u[box][tuple(path.T)]

@@ -21,13 +21,13 @@ from carotid.io import Volume, atomic_dir, write_image, write_json
 from carotid.segment.barrier import (chamber_cores, chamber_neck, companion_basins, competing_region,
                                      half_level_barrier, half_maximum_speed, point_mask, under_enhanced)
 from carotid.segment.calcium import hyperdense_edge
-from carotid.segment.join import join_seeds
 from carotid.segment.deblur import model_blur, reach_mm, refine
 from carotid.segment.handles import cavities, remove_handles
 from carotid.segment.init import automatic_region, check_points, mask_levelset, seed_levelset, seed_sample
 from carotid.segment.intensity import (VALIDATED_CONTRAST_TO_NOISE, IntensityModel, estimate_from_sample,
                                        local_level, local_radius, lumen_noise, provisional_window,
                                        through_plane_variance)
+from carotid.segment.join import join_seeds
 from carotid.segment.levelset import evolve, signed_distance
 from carotid.segment.metrics import topology
 from carotid.segment.potential import gpf_potential
