@@ -60,14 +60,15 @@ def test_segment_options_reach_the_parameters(phantom_dir, tmp_path, capsys):
                                           "--hu-window", "-50", "600", "--refine-radius", "0",
                                           "--wall-morphology", "1", "0.5", "--wall-trunk", "4",
                                           "--max-iterations", "200", "--chamber-ratio", "3",
-                                          "--slice-thickness", "1.25", "--no-measure-slice-blur"])
+                                          "--slice-thickness", "1.25", "--no-measure-slice-blur",
+                                          "--join-contrast", "0.4"])
     assert code == 0
     params = json.loads((case / "segmentation" / "report.json").read_text())["parameters"]
     assert params["alpha"] == 0.25 and params["window"] == [-50, 600]
     assert params["refine_radius_mm"] == 0 and params["max_iterations"] == 200
     assert params["wall"] and params["wall_close_mm"] == 1 and params["wall_open_mm"] == 0.5
     assert params["wall_trunk_mm"] == 4 and params["chamber_ratio"] == 3 and params["slice_thickness_mm"] == 1.25
-    assert params["measure_slice_blur"] is False
+    assert params["measure_slice_blur"] is False and params["join_contrast"] == 0.4
     assert (case / "segmentation" / "wall_mask.nii.gz").exists()
 
 
@@ -148,6 +149,7 @@ def bad_inputs(tmp_path, phantom_dir):
         ("bad parameter", ["segment", image, "--alpha", "2"]),
         ("bad chamber ratio", ["segment", image, "--chamber-ratio", "0.5"]),
         ("negative handle width", ["segment", image, "--handles", "-1"]),
+        ("join contrast of 1", ["segment", image, "--join-contrast", "1"]),
         ("negative slice thickness", ["segment", image, "--slice-thickness", "-1"]),
         ("slice thickness not a number", ["segment", image, "--slice-thickness", "nan"]),
         ("truncated file", ["segment", cut]),
