@@ -243,7 +243,8 @@ def grade(levelset: np.ndarray, mask: np.ndarray, grid: Volume) -> dict:
     if s is None:
         return {"graded_branch": None, "nascet": None, "min_diameter_mm": None, "centerline_seconds": seconds}
     out = {"graded_branch": s["branch"], "nascet": s["nascet"], "min_diameter_mm": s["min_diameter_mm"],
-           "distal_diameter_mm": s["distal_diameter_mm"], "centerline_seconds": seconds,
+           "distal_diameter_mm": s["distal_diameter_mm"], "location_mm": s["location_mm"],
+           "centerline_seconds": seconds,
            "branches": [b.name for b in cl.branches]}
     if s["branch"] == "ICA":
         out.update(half_width_grade(cl.branch("ICA"), levelset))

@@ -229,7 +229,10 @@ def make_second_phantom(seed: int) -> SecondPhantom:
     img = _noise(img, p, np.random.default_rng([seed, 99]))
     origin = (step[2] * (FINE - 1) / 2, step[1] * (FINE - 1) / 2, step[0] * (fz - 1) / 2)
     image = Volume(img.astype(np.float32), spacing=(hx, hx, hz), origin=origin)
+    lesion = np.abs(s_i - s0) <= 2.0 * sd
+    throat = np.flatnonzero(lesion)[np.argmin(lumen_r[lesion])]
     info = {"parameters": p, "vein_gap_measured_mm": gap, "bifurcation_mm": bif.tolist(),
+            "lesion": {"throat_mm": lumen_c[throat].tolist(), "min_diameter_mm": 2.0 * float(lumen_r[throat])},
             "seeds_mm": {"CCA": cca[len(cca) // 5], "ICA": _at_z(lumen_c, top - 6.0),
                          "ECA": _at_z(eca, top - 6.0)}}
     return SecondPhantom(
