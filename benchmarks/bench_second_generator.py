@@ -96,7 +96,7 @@ def run_case(seed: int) -> tuple[dict, list[str]]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="four cases")
-    parser.add_argument("--cases", type=int, default=24, help="cases 0 .. N-1 (default 24)")
+    parser.add_argument("--cases", type=int, default=48, help="cases 0 .. N-1 (default 48)")
     parser.add_argument("--jobs", type=int, default=2, help="cases run at once (default 2)")
     args = parser.parse_args()
     seeds = list(range(4 if args.quick else args.cases))
