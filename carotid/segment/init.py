@@ -50,11 +50,29 @@ def seed_levelset(volume: Volume, seeds_xyz: np.ndarray, radius_mm) -> np.ndarra
     """
     seeds_xyz = np.atleast_2d(np.asarray(seeds_xyz, float))
     check_points(volume, seeds_xyz, "seed")
-    h = volume.spacing_kji.astype(np.float32)
-    axes = grid_mm(volume.array.shape)
-    phi = np.full(volume.array.shape, np.inf, np.float32)
-    radii = np.broadcast_to(np.asarray(radius_mm, np.float32), (len(seeds_xyz),))
-    for kji, radius in zip(volume.world_to_index(seeds_xyz), radii):
+    return ball_levelset(volume.array.shape, volume.world_to_index(seeds_xyz), radius_mm, volume.spacing_kji)
+
+
+def ball_levelset(shape, centres_kji: np.ndarray, radius_mm, spacing_kji) -> np.ndarray:
+    """Signed distance (mm, float32, negative inside) to the union of balls on a grid of ``shape``.
+
+    Parameters
+    ----------
+    shape : tuple of 3 int
+    centres_kji : ndarray, shape (m, 3)
+        Ball centres as (fractional) array indices.
+    radius_mm : float or array_like, shape (m,)
+        Ball radius, one for all or one per ball.
+    spacing_kji : array_like, shape (3,)
+        Voxel size, mm.
+
+    Loops over the balls, not over voxels.
+    """
+    h = np.asarray(spacing_kji, np.float32)
+    axes = grid_mm(shape)
+    phi = np.full(shape, np.inf, np.float32)
+    radii = np.broadcast_to(np.asarray(radius_mm, np.float32), (len(centres_kji),))
+    for kji, radius in zip(centres_kji, radii):
         d2 = sum(((axes[a] - np.float32(kji[a])) * h[a]) ** 2 for a in range(3))
         np.minimum(phi, np.sqrt(d2) - radius, out=phi)
     return phi

@@ -20,6 +20,8 @@ import numpy as np
 from scipy import ndimage
 from skimage.graph import MCP_Geometric
 
+from carotid.segment.init import ball_levelset
+
 #: Largest contrast fraction a path voxel's radius is computed from: ``u -> 1`` means a tube wider than the
 #: blur, whose radius the axis intensity no longer tells (``r`` at 0.95 is 2.45 blur widths).
 SATURATION = 0.95
@@ -91,7 +93,7 @@ def join_seeds(image: np.ndarray, phi: np.ndarray, seeds_kji: np.ndarray, spacin
         if not record["accepted"]:
             continue
         radii = width * np.sqrt(-2.0 * np.log(1.0 - np.minimum(along, SATURATION)))
-        balls = _balls(out[box].shape, path, radii, spacing)
+        balls = ball_levelset(out[box].shape, path, radii, spacing)
         out[box] = np.minimum(out[box], balls)
         joined |= target
         joined[box] |= balls < 0
@@ -121,14 +123,3 @@ def _minimal_path(u: np.ndarray, joined: np.ndarray, target: np.ndarray, spacing
     costs, _ = mcp.find_costs(starts, ends, find_all_ends=False)
     end = ends[np.argmin(costs[tuple(ends.T)])]
     return np.asarray(mcp.traceback(tuple(end)))
-
-
-def _balls(shape, centres: np.ndarray, radii: np.ndarray, spacing: np.ndarray) -> np.ndarray:
-    """Signed distance (mm, float32, negative inside) of the union of balls at voxel ``centres`` (n, 3) with
-    ``radii`` (n,, mm) on a grid of ``shape``; loops over the path's balls, not over voxels."""
-    grid = np.ogrid[tuple(slice(0, n) for n in shape)]
-    out = np.full(shape, np.inf, np.float32)
-    for centre, radius in zip(centres, radii):
-        d2 = sum(((g - c) * h) ** 2 for g, c, h in zip(grid, centre, spacing))
-        np.minimum(out, (np.sqrt(d2) - radius).astype(np.float32), out=out)
-    return out
