@@ -7,7 +7,8 @@ generator builds the same anatomy class by other means, so that ``bench_second_g
 ``segment`` on images it was never developed on:
 
 * **Geometry.**  Each branch (CCA, ICA, ECA) is a sweep of spheres along a polyline (a quadratic Bezier
-  curve from the bifurcation, with a sinusoidal wander on the ICA); the lumen is their union.  The CCA runs
+  curve from the bifurcation, with a sinusoidal wander on the ICA, reduced where it would bring the ICA back
+  against the ECA); the lumen is their union.  The CCA runs
   up z; the ICA leaves within 45 degrees of posterior (+y in LPS), the ECA the opposite way.  The ICA's
   stenosis is eccentric: its axial profile is a Gaussian of standard deviation 1.5-5 mm (different
   proximally and distally) narrowing the radius to the drawn area fraction, with the lumen's centre
@@ -36,6 +37,7 @@ from carotid.io import Volume
 
 EXTENT_MM = np.array([64.0, 40.0, 40.0])  # (z, y, x)
 FINE = 3  # fine grid: voxel / FINE in every direction
+APART_MM = 1.0  # the ICA's and ECA's walls, once apart by this, stay apart (a touching pair is a loop)
 CALCIUM_LABEL = 4  # carotid.phantom.LABELS["calcium"], which bench_segmentation.calcium_in_lumen reads
 
 
@@ -160,25 +162,19 @@ def make_second_phantom(seed: int) -> SecondPhantom:
                     p["bifurcation_z_mm"]])
     cca = _line(bif - [0, 0, bif[2] + 2.0], bif)
     ti, te = np.radians(p["ica_angle_deg"]), np.radians(p["eca_angle_deg"])
-    ica = _curve(bif, outward * np.sin(ti) + [0, 0, np.cos(ti)], top + 3, 0.4, p["ica_wander_mm"])
     eca = _curve(bif, -outward * np.sin(te) + [0, 0, np.cos(te)], top + 3, 0.35)
     # radii: the ICA's bulb tapering to its distal radius, the ECA past a short taper
-    s_i, s_e = _arclength(ica), _arclength(eca)
+    s_e = _arclength(eca)
     r_far = p["ica_ratio"] * rc
-    r_ica = r_far + (1.05 * rc - r_far) * np.exp(-(s_i / 9.0) ** 2)
     r_eca = p["eca_ratio"] * rc + (0.8 - p["eca_ratio"]) * rc * np.exp(-(s_e / 3.0) ** 2)
-    # the eccentric stenosis: radius narrowed by a two-sided Gaussian, centre pushed from the plaque
-    s0 = p["stenosis_position_mm"]
-    sd = np.where(s_i < s0, p["stenosis_sd_mm"][0], p["stenosis_sd_mm"][1])
-    narrowing = (1.0 - np.sqrt(1.0 - p["stenosis_area"])) * np.exp(-0.5 * ((s_i - s0) / sd) ** 2)
-    lumen_r = r_ica * (1.0 - narrowing)
-    tangent = np.gradient(ica, axis=0)
-    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
-    paz = np.radians(p["plaque_azimuth_deg"])
-    towards = np.array([np.cos(paz), np.sin(paz), 0.0])
-    side = towards - (tangent @ towards)[:, None] * tangent
-    side /= np.linalg.norm(side, axis=1, keepdims=True)  # across the ICA, towards the plaque
-    lumen_c = ica - (p["eccentricity"] * (r_ica - lumen_r))[:, None] * side
+    while True:  # a wander that brings the ICA back against the ECA would make the lumen a loop: reduce it
+        ica = _curve(bif, outward * np.sin(ti) + [0, 0, np.cos(ti)], top + 3, 0.4, p["ica_wander_mm"])
+        s_i = _arclength(ica)
+        r_ica = r_far + (1.05 * rc - r_far) * np.exp(-(s_i / 9.0) ** 2)
+        lumen_c, lumen_r, side = _stenosis(ica, s_i, r_ica, p)
+        if p["ica_wander_mm"] < 0.05 or _apart(lumen_c, lumen_r, eca, r_eca, APART_MM):
+            break
+        p["ica_wander_mm"] *= 0.8
     lumen = np.full(shape_fine, np.float32(1e3))
     for points, radii in ((cca, np.full(len(cca), rc)), (lumen_c, lumen_r), (eca, r_eca)):
         _sweep(step, points, radii, lumen)
@@ -229,7 +225,8 @@ def make_second_phantom(seed: int) -> SecondPhantom:
     img = _noise(img, p, np.random.default_rng([seed, 99]))
     origin = (step[2] * (FINE - 1) / 2, step[1] * (FINE - 1) / 2, step[0] * (fz - 1) / 2)
     image = Volume(img.astype(np.float32), spacing=(hx, hx, hz), origin=origin)
-    lesion = np.abs(s_i - s0) <= 2.0 * sd
+    s0 = p["stenosis_position_mm"]
+    lesion = np.abs(s_i - s0) <= 2.0 * np.where(s_i < s0, p["stenosis_sd_mm"][0], p["stenosis_sd_mm"][1])
     throat = np.flatnonzero(lesion)[np.argmin(lumen_r[lesion])]
     info = {"parameters": p, "vein_gap_measured_mm": gap, "bifurcation_mm": bif.tolist(),
             "lesion": {"throat_mm": lumen_c[throat].tolist(), "min_diameter_mm": 2.0 * float(lumen_r[throat])},
@@ -240,6 +237,32 @@ def make_second_phantom(seed: int) -> SecondPhantom:
         labels=image.with_array(np.where(calcium, CALCIUM_LABEL, 0).astype(np.uint8)),
         branches=[Branch("CCA", cca, np.full(len(cca), rc)), Branch("ICA", lumen_c, lumen_r),
                   Branch("ECA", eca, r_eca)], info=info)
+
+
+def _stenosis(ica, s, r, p):
+    """The ICA's lumen (centres (n, 3) and radii (n,), mm) narrowed by the eccentric stenosis: the radius
+    ``r`` by a two-sided Gaussian in arc length ``s`` (n,), the centre pushed from the plaque; and the unit
+    vectors (n, 3) across the ICA towards the plaque."""
+    s0 = p["stenosis_position_mm"]
+    sd = np.where(s < s0, p["stenosis_sd_mm"][0], p["stenosis_sd_mm"][1])
+    narrowing = (1.0 - np.sqrt(1.0 - p["stenosis_area"])) * np.exp(-0.5 * ((s - s0) / sd) ** 2)
+    lumen_r = r * (1.0 - narrowing)
+    tangent = np.gradient(ica, axis=0)
+    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+    paz = np.radians(p["plaque_azimuth_deg"])
+    towards = np.array([np.cos(paz), np.sin(paz), 0.0])
+    side = towards - (tangent @ towards)[:, None] * tangent
+    side /= np.linalg.norm(side, axis=1, keepdims=True)
+    return ica - (p["eccentricity"] * (r - lumen_r))[:, None] * side, lumen_r, side
+
+
+def _apart(a, r_a, b, r_b, gap):
+    """Whether two branches leaving one point, once their walls are ``gap`` mm apart, stay so: polylines
+    ``a`` (n, 3) and ``b`` (m, 3) mm with radii ``r_a`` (n,) and ``r_b`` (m,) mm."""
+    distance, nearest = cKDTree(b).query(a)
+    clearance = distance - r_a - r_b[nearest]
+    parted = np.flatnonzero(clearance > gap)
+    return len(parted) == 0 or bool(np.all(clearance[parted[0]:] > gap))
 
 
 def _at_z(points, z):

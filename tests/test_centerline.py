@@ -401,6 +401,21 @@ def test_stenosis_grading_of_an_analytic_profile():
     assert taper["nascet"] == 0.0 and taper["ecst"] < 1e-9
 
 
+def test_a_cut_end_is_not_graded_as_the_lesion():
+    """Where the image border cuts a curving ICA, its axis leaves the lumen in the last millimetre and the last
+    sections read a radius near zero (second generator, seed 45).  The 20 % NASCET dip at 15 mm is the lesion;
+    skipping only the end's own radius (0.1 mm) would grade the cut, a taper, at 0 %."""
+    s = np.linspace(0.0, 40.0, 401)
+    r = 2.5 - 0.5 * np.clip(1 - np.abs(s - 15.0) / 4.0, 0, 1)
+    # The last 2.9 mm of seed 45's true ICA: median radius and half the narrowest chord, mm.
+    back = [-2.89, -2.32, -1.74, -1.16, -0.58, 0.0]
+    median = np.minimum(r, np.interp(s - 40.0, back, [2.40, 2.31, 2.21, 1.27, 0.14, 0.14], left=9.0))
+    narrow = np.minimum(r, np.interp(s - 40.0, back, [2.40, 2.18, 1.67, 1.12, 0.14, 0.14], left=9.0))
+    g = stenosis(Branch("ICA", np.stack([0 * s, 0 * s, s], axis=1), median, None, median, narrow))
+    assert g["arclength_from_bifurcation_mm"] == pytest.approx(15.0, abs=0.1)
+    assert g["nascet"] == pytest.approx(0.2, abs=1e-6) and g["distal_reference"] == "distal"
+
+
 # ---------------------------------------------------------------------------------------------- phantoms
 
 @pytest.mark.parametrize("case", ACCURACY_CASES)

@@ -15,8 +15,8 @@ approximates, and a round vessel's diameter is its median one:
   interpolation between the widest sections of m(s) within four median radii
   upstream and downstream of it (the sinus bulb, the recovered distal ICA);
 * the lesion is where r(s) falls furthest below that estimate, away from the
-  branch ends (one end radius is skipped at each end, where the radius
-  reflects the junction or the cut);
+  branch ends (one end radius, and at least the branch's median radius, is
+  skipped at each end, where the radius reflects the junction or the cut);
 * NASCET = 1 - d_min / d_distal, with d_min = 2 r at the lesion and d_distal
   the normal distal diameter: the median of 2 m(s) over the branch beyond the
   point where m(s) has recovered to 95% of its distal plateau (the median
@@ -118,12 +118,35 @@ def grading_profiles(branch: Branch) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(narrow, float), np.asarray(median, float)
 
 
+def end_skips(radii: np.ndarray) -> tuple[float, float]:
+    """Arc lengths (mm) to skip at the first and the last point of a branch: the radius there, and at least
+    the branch's median radius.
+
+    The radius at an end reflects the junction or the cut, not the vessel.  Where the image border cuts a
+    curving vessel, the axis continued straight to the border (``axes.straighten_border_end``) leaves the
+    lumen in its last millimetre, and its last points read a radius near zero: skipping only that would
+    leave the cut's narrowed sections to be graded as the lesion.  The median radius covers an oblique cut
+    up to 45 degrees, whose sections within ``r tan(angle)`` of the border are incomplete.
+
+    Parameters
+    ----------
+    radii : ndarray, shape (n,)
+        Radius profile along the branch, mm.
+
+    Returns
+    -------
+    (head, tail) : float
+    """
+    body = float(np.median(radii))
+    return max(float(radii[0]), body), max(float(radii[-1]), body)
+
+
 def healthy_profile(branch: Branch,
                     radii: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Arc length, the points away from the branch ends, and the estimated original radius there.
 
-    One end radius is skipped at each end (the radius there reflects the junction or the cut); the original
-    radius is :func:`local_healthy_radius` with a reach of four median radii.
+    One end radius is skipped at each end (:func:`end_skips`); the original radius is
+    :func:`local_healthy_radius` with a reach of four median radii.
 
     Parameters
     ----------
@@ -141,7 +164,8 @@ def healthy_profile(branch: Branch,
     """
     r = branch.radii if radii is None else np.asarray(radii, float)
     s = arclength(branch.points)
-    valid = np.flatnonzero((s >= r[0]) & (s <= s[-1] - r[-1]))
+    head, tail = end_skips(r)
+    valid = np.flatnonzero((s >= head) & (s <= s[-1] - tail))
     if len(valid) < 5:
         return None
     return s, valid, local_healthy_radius(s[valid], r[valid], 4.0 * float(np.median(r[valid])))
@@ -320,7 +344,7 @@ def bifurcation_geometry(cl: Centerlines) -> dict | None:
         for b, s in ((ica, s_ica), (eca, s_eca)):
             window = _window(s, DIRECTION_WINDOW[0] * radius, DIRECTION_WINDOW[1] * radius)
             directions[b.name] = _direction(b.points[window], b.points[0])
-            reference[b.name] = _window(s, DAUGHTER_START * radius, s[-1] - radii[b.name][-1])
+            reference[b.name] = _window(s, DAUGHTER_START * radius, s[-1] - end_skips(radii[b.name])[1])
         in_bulb = _window(s_ica, BULB_WINDOW[0] * radius, BULB_WINDOW[1] * radius)
     except ValueError as exc:
         return {"reason": str(exc)}
