@@ -704,7 +704,7 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
         converged.append(result.converged)
     del ghat, g, image01
     joins = []
-    if params.join_contrast > 0 and seeds_kji is not None:
+    if params.join_contrast > 0 and seeds_kji is not None and len(seeds_kji) > 1:
         phi, joins = join_seeds(image, phi, seeds_kji, spacing, model.lumen, model.background,
                                 model.blur or float(np.max(spacing)), stopped, params.join_contrast)
     thickness, thickness_source = None, "no refinement"
