@@ -402,9 +402,9 @@ def test_stenosis_grading_of_an_analytic_profile():
 
 
 def test_a_cut_end_is_not_graded_as_the_lesion():
-    """Where the image border cuts a curving ICA, its axis leaves the lumen in the last millimetre and the last
-    sections read a radius near zero (second generator, seed 45).  The 20 % NASCET dip at 15 mm is the lesion;
-    skipping only the end's own radius (0.1 mm) would grade the cut, a taper, at 0 %."""
+    """Where the image border cuts a curving ICA, the last sections read a radius near zero (second generator,
+    seed 45).  The 20 % NASCET dip at 15 mm is the lesion; skipping only the end's own radius (0.14 mm) would
+    grade the cut, a taper, at 0 %."""
     s = np.linspace(0.0, 40.0, 401)
     r = 2.5 - 0.5 * np.clip(1 - np.abs(s - 15.0) / 4.0, 0, 1)
     # The last 2.9 mm of seed 45's true ICA: median radius and half the narrowest chord, mm.

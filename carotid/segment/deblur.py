@@ -28,8 +28,9 @@ restricted to a band around the wall: the speed of the wall is
 brighter than the model.  The displacement is bounded by one blur width
 from the front the evolution converged to, so the refinement corrects a
 position and never changes what the front captured; voxels where a
-neighbour's blur (a vein held out of the lumen) or a calcification's
-reaches are left out of the misfit.
+neighbour's blur (a vein held out of the lumen) or a calcification's reaches
+are left out of the misfit, and on request (``neighbours``) any enhancing
+structure beyond the wall's blur with its own blur (``bright_neighbours``).
 
 Written here because no segmentation library offers a blur-model
 refinement of a level set; the filters are scipy's.
@@ -40,12 +41,13 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from carotid.segment.calcium import TISSUE_FRACTION
 from carotid.segment.intensity import local_level, local_linear_level, region_box
 
 def refine(image: np.ndarray, phi: np.ndarray, spacing_kji, lumen: float, background: float, blur_mm: float,
            exclude: np.ndarray | None = None, iterations: int = 20, gain: float = 2.0, smooth_mm: float = 1.0,
            normal: bool = True, level_mm: float = 0.0, linear_level: bool = False, slices: bool = True,
-           thickness_mm: float | None = None) -> np.ndarray:
+           thickness_mm: float | None = None, neighbours: bool = False) -> np.ndarray:
     """Level set moved to the wall that best explains the image under a Gaussian blur.
 
     Parameters
@@ -83,6 +85,9 @@ def refine(image: np.ndarray, phi: np.ndarray, spacing_kji, lumen: float, backgr
         ``blur_mm`` along every axis.
     thickness_mm : float, optional
         Slice thickness along k (mm) for ``axis_blur``; None: the slice spacing.
+    neighbours : bool
+        Leave the bright structures beyond the wall's blur (``bright_neighbours``) out of the misfit, as
+        ``exclude``, and out of the tissue level with their blur (two blur widths around them).
 
     Returns
     -------
@@ -97,11 +102,19 @@ def refine(image: np.ndarray, phi: np.ndarray, spacing_kji, lumen: float, backgr
         return phi
     phi0 = np.asarray(phi[box], np.float32)
     crop = np.asarray(image[box], np.float32)
-    clear = np.ones(phi0.shape, bool)
-    if exclude is not None and exclude[box].any():
-        clear = ndimage.distance_transform_edt(~exclude[box], sampling=spacing) > 2.0 * sigma_mm
-    weight = (np.abs(phi0) < band) & clear & (phi0 < np.float32(0.5 * sigma_mm))
     excluded = None if exclude is None else exclude[box]
+    around = None
+    if neighbours:
+        bright = bright_neighbours(crop, phi0, spacing, sigma_mm, lumen, background)
+        if bright.any():
+            excluded = bright if excluded is None else excluded | bright
+            around = ndimage.distance_transform_edt(~bright, sampling=spacing) <= 2.0 * sigma_mm
+    clear = np.ones(phi0.shape, bool)
+    if excluded is not None and excluded.any():
+        clear = ndimage.distance_transform_edt(~excluded, sampling=spacing) > 2.0 * sigma_mm
+    weight = (np.abs(phi0) < band) & clear & (phi0 < np.float32(0.5 * sigma_mm))
+    if around is not None:  # the tissue level is read clear of the bright neighbours' blur as well
+        excluded = excluded | around
     tissue = local_background(crop, phi0, spacing, sigma_mm, excluded, background)
     if normal:
         tissue = normal_background(crop, phi0, spacing, sigma_mm, excluded, tissue)
@@ -237,6 +250,42 @@ def lumen_level(image: np.ndarray, tissue: np.ndarray, phi: np.ndarray, core: np
     if linear is not None:
         return local_linear_level(unblurred, core, spacing, scale_mm, default, linear)
     return local_level(unblurred, core, spacing, scale_mm, default)
+
+
+def bright_neighbours(image: np.ndarray, phi: np.ndarray, spacing, blur_mm: float, lumen: float,
+                      background: float, fraction: float = TISSUE_FRACTION) -> np.ndarray:
+    """Voxels beyond the reach of the wall's blur brighter than the tissue by ``fraction`` of the contrast.
+
+    Beyond two blur widths (and a voxel) outside the wall, the lumen's own blur adds at most a few per cent
+    of its contrast; what exceeds the tissue level ``B`` by a quarter of the contrast ``A - B`` there is
+    another enhancing structure (a jugular vein, an artery the front never reached, enhancing bone), and
+    the same quarter bounds the tissue in ``calcium``.  Sampled as tissue, its level raises the model's
+    background, and the wall facing it is pulled into the lumen by the whole bound of one blur width (a
+    jugular vein 1-2 mm from the ICA of a contrast-enhanced MR angiogram blurred by 0.67 mm: the throat
+    graded 14 NASCET points too tight).  Decided on the image smoothed by the blur, so that the tissue's
+    noise does not cross the level.
+
+    Parameters
+    ----------
+    image : ndarray, float32, shape (nk, nj, ni)
+    phi : ndarray, float32, same shape
+        Signed distance to the wall, mm, negative inside.
+    spacing : array_like, shape (3,)
+    blur_mm : float
+    lumen, background : float
+        Lumen and tissue levels ``A`` and ``B``.
+    fraction : float
+
+    Returns
+    -------
+    ndarray of bool, same shape
+    """
+    spacing = np.asarray(spacing, float)
+    beyond = phi > np.float32(2.0 * blur_mm + spacing.min())
+    if not beyond.any():
+        return beyond
+    level = np.float32(background + fraction * (lumen - background))
+    return beyond & (ndimage.gaussian_filter(image, blur_mm / spacing) > level)
 
 
 def local_background(image: np.ndarray, phi: np.ndarray, spacing, blur_mm: float, exclude: np.ndarray | None,

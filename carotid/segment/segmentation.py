@@ -124,6 +124,12 @@ class SegmentParameters:
         (``intensity.local_linear_level``), which does not lean towards a stenosis's wider bulb, instead of a
         local mean.  Off: under the refinement's early stop the leaning level holds a tight throat's wall in,
         and the level without the lean leaves it wider (``benchmarks/README.md``).
+    deblur_neighbours : bool
+        Leave enhancing structures beyond the wall's blur (a jugular vein or an artery the front never
+        reached: ``deblur.bright_neighbours``) out of that refinement's tissue level, with their own blur,
+        instead of letting them pull the wall facing them into the lumen.  Off: on the phantom family a vein
+        sampled as tissue beside a tight throat hides part of the throat's widening, and leaving it out
+        widens those throats past the criterion until that widening is mended (``benchmarks/README.md``).
     slice_thickness_mm : float
         Slice thickness (mm) whose boxcar that model adds along the slice axis; 0: the thickness the scan
         records (``Volume.slice_thickness``: DICOM SliceThickness, a dcm2niix sidecar), else the slice
@@ -213,6 +219,7 @@ class SegmentParameters:
     deblur_smooth_mm: float = 1.0
     deblur_slices: bool = True
     deblur_linear_level: bool = False
+    deblur_neighbours: bool = False
     slice_thickness_mm: float = 0.0
     measure_slice_blur: bool = True
     handle_mm: float = 1.5
@@ -411,6 +418,7 @@ def deblur(image: np.ndarray, phi: np.ndarray, spacing_kji, model: IntensityMode
     return refine(image, phi, spacing_kji, model.lumen, model.background, model.blur, exclude,
                   iterations=params.deblur_iterations, gain=params.deblur_gain, smooth_mm=params.deblur_smooth_mm,
                   level_mm=params.level_mm, linear_level=params.deblur_linear_level, slices=params.deblur_slices,
+                  neighbours=params.deblur_neighbours,
                   thickness_mm=thickness_mm)
 
 
