@@ -36,8 +36,9 @@ from concurrent.futures import ProcessPoolExecutor
 import numpy as np
 
 from _common import git_state, write_results
-from bench_segmentation import (brief, grade, guarded, run_carotid, run_gac_from_seeds, run_threshold, run_vmtk,
-                                score, summarise, threshold_rule)
+from bench_segmentation import (brief, grade, guarded, meets, run_carotid, run_gac_from_seeds, run_threshold,
+                                run_vmtk, score, summarise, threshold_rule)
+from carotid.centerline.plaque import CALCIFIED_MM, calcified
 from second_generator import draw, make_second_phantom
 
 METHODS = ("carotid", "vmtk", "gac", "threshold")
@@ -93,6 +94,23 @@ def run_case(seed: int) -> tuple[dict, list[str]]:
     return case, lines
 
 
+def calcified_split(cases: list[dict]) -> dict:
+    """carotid's NASCET and minimal-diameter counts (``CRITERIA``) over the cases graded at the lesion, apart
+    for the stenoses its grading calls calcified (``plaque.calcified``: calcium it found within
+    ``CALCIFIED_MM`` of the throat's wall, the report's note) and the others, with the drawn calcium's
+    presence beside each."""
+    out = {"calcified_mm": CALCIFIED_MM}
+    for name, flagged in (("calcified", True), ("not_calcified", False)):
+        rows = [(c["seed"], c["parameters"]["calcium"], c["methods"]["carotid"]) for c in cases
+                if c["truth_graded"]["graded_at_lesion"] and c["methods"]["carotid"].get("status") == "ok"
+                and calcified(c["methods"]["carotid"]) == flagged]
+        out[name] = {"cases": [seed for seed, _, _ in rows],
+                     "with_drawn_calcium": sum(bool(drawn) for _, drawn, _ in rows),
+                     **{f"meeting_{key}": [seed for seed, _, r in rows if meets(key, r.get(key))]
+                        for key in ("nascet_error_points", "min_diameter_error_mm")}}
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="four cases")
@@ -112,10 +130,16 @@ def main() -> None:
     for name, s in (("all cases", summary), ("true lumen graded at the lesion", at_lesion)):
         for method, m in s["methods"].items():
             print(f"{name}, {method}: ok {m['ok']}, meeting {m['meeting']}, median {m['median']}", flush=True)
+    for name, split in calcified_split(cases).items():
+        if isinstance(split, dict):
+            print(f"carotid, {name.replace('_', ' ')} at the lesion: {len(split['cases'])} cases "
+                  f"({split['with_drawn_calcium']} with calcium drawn), NASCET within 5 points on "
+                  f"{len(split['meeting_nascet_error_points'])}, minimal diameter within 0.25 mm on "
+                  f"{len(split['meeting_min_diameter_error_mm'])}", flush=True)
     write_results("second_generator", {
         "benchmark": "segmentation on a second phantom generator", "git": git, "jobs": args.jobs,
         "draw": {"seeds": seeds, "parameters_of_seed_0": draw(0)}, "cases": cases, "summary": summary,
-        "summary_graded_at_lesion": at_lesion, "at_lesion_mm": AT_LESION_MM,
+        "summary_graded_at_lesion": at_lesion, "at_lesion_mm": AT_LESION_MM, "calcified": calcified_split(cases),
         "total_seconds": time.perf_counter() - start}, quick=args.quick)
 
 

@@ -99,6 +99,7 @@ import _vmtk
 from _common import GacSetting, GacStop, git_state, run_gac, timed, write_results
 from carotid.centerline import Branch, compute_centerlines, stenosis
 from carotid.centerline.axes import section_profile, section_radii
+from carotid.centerline.plaque import calcium_distance
 from carotid.errors import CarotidError
 from carotid.io import Volume, read_image
 from carotid.phantom import LABELS, make_phantom
@@ -190,11 +191,16 @@ def branch_seeds(phantom) -> np.ndarray:
     return np.array([s["CCA"], s["ICA"], s["ECA"]], float)
 
 
+# A run's arrays, kept out of the JSON.
+RUN_ARRAYS = ("levelset", "mask", "calcium")
+
+
 def run_carotid(volume: Volume, seeds, params: SegmentParameters | None = None, stops=None) -> dict:
     """carotid's ``segment`` from ``seeds`` with ``params`` (default: the defaults) and stop points ``stops``."""
     result, seconds = timed(segment, volume, seeds_xyz=seeds, params=params or SegmentParameters(), stops_xyz=stops)
     return {"levelset": np.asarray(result.levelset.array, np.float32), "mask": result.mask.array > 0,
-            "seconds": seconds, "iterations": result.report["iterations"], "converged": result.report["converged"],
+            "calcium": None if result.calcium is None else result.calcium.array, "seconds": seconds,
+            "iterations": result.report["iterations"], "converged": result.report["converged"],
             "stage_seconds": result.report["seconds"],
             "handles_removed": sum(c["handles_removed"] for c in result.report["handles_removed"]),
             "cavities_filled": result.report["cavities_filled"]["count"],
@@ -235,8 +241,9 @@ def run_threshold(volume: Volume, seeds, threshold: float) -> dict:
 
 # ------------------------------------------------------------------------------------------------ scoring
 
-def grade(levelset: np.ndarray, mask: np.ndarray, grid: Volume) -> dict:
-    """carotid's centerlines and stenosis grading on a level set (and its mask) on ``grid``."""
+def grade(levelset: np.ndarray, mask: np.ndarray, grid: Volume, calcium: np.ndarray | None = None) -> dict:
+    """carotid's centerlines and stenosis grading on a level set (and its mask) on ``grid``; with the
+    segmentation's hyperdense structures (``calcium``), the calcium's distance from the throat's wall."""
     levelset = grid.with_array(np.asarray(levelset, np.float32))
     cl, seconds = timed(compute_centerlines, levelset, grid.with_array(np.asarray(mask, np.uint8)))
     s = cl.info["stenosis"]
@@ -246,6 +253,9 @@ def grade(levelset: np.ndarray, mask: np.ndarray, grid: Volume) -> dict:
            "distal_diameter_mm": s["distal_diameter_mm"], "location_mm": s["location_mm"],
            "centerline_seconds": seconds,
            "branches": [b.name for b in cl.branches]}
+    if calcium is not None:
+        out["calcium_mm"] = calcium_distance(s["location_mm"], s["local_diameter_mm"], levelset,
+                                             grid.with_array(calcium))
     if s["branch"] == "ICA":
         out.update(half_width_grade(cl.branch("ICA"), levelset))
     return out
@@ -288,7 +298,7 @@ def score(run: dict, phantom, truth_grade: dict) -> dict:
     levelset = run["levelset"]
     inside = run["mask"] if "mask" in run else levelset < 0
     truth_mask, truth_sdf = phantom.mask.array > 0, phantom.sdf.array
-    out = {k: v for k, v in run.items() if k not in ("levelset", "mask")}
+    out = {k: v for k, v in run.items() if k not in RUN_ARRAYS}
     voxels = int(inside.sum())
     out.update(status="ok", voxels=voxels, dice=dice(inside, truth_mask),
                leak_fraction=float(np.count_nonzero(inside & (truth_sdf > LEAK_MM)) / max(voxels, 1)),
@@ -300,7 +310,7 @@ def score(run: dict, phantom, truth_grade: dict) -> dict:
     distances = surface_distances(levelset, truth_sdf, phantom.image.spacing_kji)
     out.update({f"surface_{k}_mm": v for k, v in distances.items()})
     try:
-        g = grade(levelset, inside, phantom.image)
+        g = grade(levelset, inside, phantom.image, run.get("calcium"))
     except Exception as error:  # noqa: BLE001 - a grading failure is a result
         out.update(grading_error=f"{type(error).__name__}: {error}", nascet=None, nascet_error_points=None,
                    min_diameter_mm=None, min_diameter_error_mm=None)
@@ -543,7 +553,7 @@ def run_cta(with_gac: bool) -> dict:
         record, run = guarded(name, "CTA", func)
         if run is not None:
             mask = run["mask"] if "mask" in run else run["levelset"] < 0
-            record = {**{k: v for k, v in run.items() if k not in ("levelset", "mask")}, "status": "ok",
+            record = {**{k: v for k, v in run.items() if k not in RUN_ARRAYS}, "status": "ok",
                       **overlap(mask)}
             log(f"CTA {name}: Dice true lumen {record['dice_aorta_true_lumen']:.3f}, aorta "
                 f"{record['dice_aorta']:.3f}; sensitivity / precision (true lumen) "

@@ -28,7 +28,8 @@ def test_segment_writes_the_case_folder(phantom_dir, tmp_path, capsys):
     code, out, _ = run_and_capture(capsys, ["segment", phantom_dir / "image.nii.gz", "-o", case, "--seed", *seed])
     assert code == 0 and "segmentation written" in out and "contrast-to-noise" not in out
     folder = case / "segmentation"
-    assert sorted(p.name for p in folder.iterdir()) == ["levelset.nii.gz", "mask.nii.gz", "report.json"]
+    assert sorted(p.name for p in folder.iterdir()) == ["calcium_mask.nii.gz", "levelset.nii.gz", "mask.nii.gz",
+                                                        "report.json"]
     levelset = read_image(folder / "levelset.nii.gz")
     mask = read_image(folder / "mask.nii.gz", dtype=None)
     image = read_image(phantom_dir / "image.nii.gz")

@@ -10,11 +10,15 @@ import numpy as np
 from carotid.centerline.extract import compute_centerlines
 from carotid.centerline.io import write_centerlines
 from carotid.centerline.model import Centerlines
+from carotid.centerline.plaque import annotate, calcified
 from carotid.errors import CarotidError
 
 
 def run_centerlines(case_dir: str | Path, prune: float = 2.0, smoothing: float = 1.0) -> tuple[Centerlines, Path]:
     """Read ``CASE_DIR/segmentation``, compute the centerlines and write them to the case folder.
+
+    Each stenosis grading gets ``calcium_mm`` (``plaque.calcium_distance``) when the segmentation wrote its
+    hyperdense structures (``calcium_mask.nii.gz``).
 
     Returns
     -------
@@ -36,6 +40,12 @@ def run_centerlines(case_dir: str | Path, prune: float = 2.0, smoothing: float =
     levelset = read_image(levelset_path)
     mask = read_image(mask_path, dtype=np.uint8)
     cl = compute_centerlines(levelset, mask, prune=prune, smoothing=smoothing)
+    calcium_path = seg / "calcium_mask.nii.gz"
+    if calcium_path.exists():
+        calcium = read_image(calcium_path, dtype=np.uint8)
+        if not calcium.same_grid(levelset):
+            raise CarotidError(f"{calcium_path}: not on the grid of {levelset_path}; segment the case again")
+        annotate(cl.info, levelset, calcium)
     vtp, _ = write_centerlines(cl, case_dir)
     return cl, vtp
 
@@ -54,6 +64,8 @@ def summary(cl: Centerlines) -> str:
         text += (f"Narrowest {st['branch']} section {st['arclength_from_bifurcation_mm']:.1f} mm from the "
                  f"bifurcation: diameter {st['min_diameter_mm']:.2f} mm, NASCET {100 * st['nascet']:.0f}%, "
                  f"ECST {100 * st['ecst']:.0f}%, area reduction {100 * st['area_reduction']:.0f}%.")
+        if calcified(st):
+            text += f" Calcified: calcium {st['calcium_mm']:.1f} mm from the lumen at the stenosis."
     return text
 
 

@@ -25,6 +25,7 @@ import numpy as np
 from carotid import __version__
 from carotid.centerline.features import (BULB_EXCESS, BULB_WINDOW, CCA_WINDOW, DAUGHTER_START, DIRECTION_WINDOW,
                                         geometry_features)
+from carotid.centerline.plaque import calcified
 from carotid.flow.convergence import STATUS
 from carotid.flow.indices import HIGH_OSI, LOW_TAWSS_PA, node_areas
 from carotid.flow.regions import INDEX_UNITS, REGION_INDICES, REGION_NAMES, region_statistics, wall_regions
@@ -303,7 +304,7 @@ def stenosis_location(stenosis: dict) -> str:
 
 
 def verdict_html(geometry: dict) -> str:
-    """The stenosis verdict: NASCET and ECST grades, category, diameters and location."""
+    """The stenosis verdict: NASCET and ECST grades, category, diameters, location and the calcium there."""
     grade = geometry.get("stenosis")
     if not grade:
         return ('<div class="verdict"><h3>Stenosis</h3><p class="missing">No stenosis grading: '
@@ -315,13 +316,18 @@ def verdict_html(geometry: dict) -> str:
             ("distal ICA diameter (NASCET reference)", f"{grade['distal_diameter_mm']:.2f} mm"),
             ("local diameter (ECST reference)", f"{grade['local_diameter_mm']:.2f} mm"),
             ("location", stenosis_location(grade))]
-    taper = ("<p class='missing'>The narrowest section ends the measured branch: no distal reference, "
+    if grade.get("calcium_mm") is not None:
+        rows.append(("calcium", f"{grade['calcium_mm']:.1f} mm from the lumen at the stenosis"))
+    notes = ("<p class='missing'>The narrowest section ends the measured branch: no distal reference, "
              "graded 0.</p>" if grade.get("distal_reference") == "none" else "")
+    if calcified(grade):
+        notes += ("<p class='missing'>Calcified stenosis: the calcium's blur hides the lumen's wall beside it, "
+                  "so this grade is less certain than that of a soft plaque; read it against the image.</p>")
     body = "".join(f"<tr><th>{html.escape(k)}</th><td>{html.escape(v)}</td></tr>" for k, v in rows)
     return (f'<div class="verdict" id="verdict"><h3>Stenosis ({html.escape(grade["branch"])})</h3>'
             f'<div class="grade">NASCET {100 * grade["nascet"]:.1f} %</div>'
             f'<p><span class="badge {CATEGORY_CLASS[category]}">{html.escape(category)}</span> '
-            f"NASCET category</p><table>{body}</table>{taper}</div>")
+            f"NASCET category</p><table>{body}</table>{notes}</div>")
 
 
 def duplex_html(flow: dict) -> str:

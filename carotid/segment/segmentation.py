@@ -325,12 +325,16 @@ class Segmentation:
         Parameters, initialisation, iterations, convergence, seconds, volume.
     wall : Volume or None
         uint8 mask of the whole vessel (lumen, thrombus, wall), 1 inside, when ``params.wall`` asked for it.
+    calcium : Volume or None
+        uint8 mask of the hyperdense structures (calcium, bone) taken out before the evolution
+        (``calcium.hyperdense_edge``), 1 inside; None when ``params.calcium_edge`` is off.
     """
 
     levelset: Volume
     mask: Volume
     report: dict = field(default_factory=dict)
     wall: Volume | None = None
+    calcium: Volume | None = None
 
 
 def check_image(volume: Volume) -> None:
@@ -777,7 +781,8 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
                   "origin_mm": list(volume.origin), "slice_thickness_mm": volume.slice_thickness},
     }
     return Segmentation(volume.with_array(phi), volume.with_array(mask), report,
-                        None if wall is None else volume.with_array(wall))
+                        None if wall is None else volume.with_array(wall),
+                        None if dense is None else volume.with_array(dense.astype(np.uint8)))
 
 
 @dataclass
@@ -820,7 +825,8 @@ def run_stage(case_dir: Path, params: dict, inputs: list[Path], progress=None) -
 
 
 def write_segmentation(result: Segmentation, case_dir: str | Path, image_path: str | Path | None = None) -> Path:
-    """Write ``levelset.nii.gz``, ``mask.nii.gz``, ``report.json`` (and ``wall_mask.nii.gz``) atomically.
+    """Write ``levelset.nii.gz``, ``mask.nii.gz``, ``report.json`` (and ``wall_mask.nii.gz``,
+    ``calcium_mask.nii.gz``) atomically.
 
     ``image_path``, the segmented image's file or DICOM folder, is recorded as ``report.json``
     ``image.path`` (absolute), so that a case built stage by stage still finds its scan.
@@ -833,5 +839,7 @@ def write_segmentation(result: Segmentation, case_dir: str | Path, image_path: s
         write_image(result.mask, tmp / "mask.nii.gz")
         if result.wall is not None:
             write_image(result.wall, tmp / "wall_mask.nii.gz")
+        if result.calcium is not None:
+            write_image(result.calcium, tmp / "calcium_mask.nii.gz")
         write_json(result.report, tmp / "report.json")
     return out
