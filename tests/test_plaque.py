@@ -106,7 +106,7 @@ def test_the_graded_stenosis_carries_its_calcium_to_geometry_summary_and_report(
     assert grade["calcium_mm"] <= 0.5 * max(ph.sdf.spacing)
     assert "Calcified" in capsys.readouterr().out
     page = verdict_html({"stenosis": grade})
-    assert "Calcified stenosis" in page and "from the lumen at the stenosis" in page
+    assert "Calcified stenosis" in page and "the lumen at the stenosis" in page
 
     # A mask on another grid is refused, not read in the wrong place.
     moved = Volume(calcium.array, calcium.spacing, np.asarray(calcium.origin) + 1.0, calcium.direction)

@@ -129,15 +129,15 @@ def test_edge_blur_reads_the_blur_within_the_slices_on_a_tube_across_them():
     assert measured_blur(image, spacing, max_tilt=1.0) > 1.15 * truth
 
 
-def calcified_tube(sigma):
-    """A tube of radius 3 mm whose wall holds a calcium sphere (radius 1.5 mm) reaching 1 mm into the lumen.
+def calcified_tube(sigma, radius=1.5):
+    """A tube of radius 3 mm whose wall holds a calcium sphere (``radius``, mm) reaching 1 mm into the lumen.
 
     Returns the image and the lumen alone blurred (no calcium).  On the line from the axis to the sphere's
     centre (along +i) the lumen ends where the calcium begins, 2 mm from the axis.
     """
     shape = (48, 64, 64)
     k, j, i = grid(shape)
-    sphere = np.sqrt(k ** 2 + j ** 2 + (i - 3.5) ** 2) - 1.5
+    sphere = np.sqrt(k ** 2 + j ** 2 + (i - 2.0 - radius) ** 2) - radius
     lumen = np.maximum(tube_sdf(shape, 3.0), -sphere)
     lumen_only = B + (A - B) * blurred(occupancy(lumen), sigma)
     image = lumen_only + (P - B) * blurred(occupancy(sphere), sigma)
@@ -160,9 +160,9 @@ def edge_towards_calcium(image):
     return crossing(ndimage.map_coordinates(image, coords, order=1), positions, 0.5 * (A + B))
 
 
-def calcium_edge_error(image, sigma):
+def calcium_edge_error(image, sigma, balls=False):
     """Where the corrected image puts the lumen's edge next to the calcium, minus where it is (mm)."""
-    corrected, _, info = hyperdense_edge(image, A + 0.3 * (A - B), A, B, SPACING, sigma)
+    corrected, _, info = hyperdense_edge(image, A + 0.3 * (A - B), A, B, SPACING, sigma, balls=balls)
     assert info["structures"] == 1
     return edge_towards_calcium(corrected) - 2.0
 
@@ -181,14 +181,43 @@ def test_calcium_and_its_blur_leave_the_lumen_edge_where_it_is(sigma, monkeypatc
     assert abs(kept[beyond] - B) > 0.5 * abs(image[beyond] - B)
     # Mutations that put the lumen's edge 0.3 mm or more into the calcification: its extent to the voxel (no
     # sub-voxel edge); the sub-voxel edge without its curvature term.
-    monkeypatch.setattr(calcium, "edge_fraction", lambda image, extent, *args: extent.astype(np.float32))
+    monkeypatch.setattr(calcium, "edge_fraction", lambda image, extent, *args, **kwargs: extent.astype(np.float32))
     assert calcium_edge_error(image, sigma) > 0.3
     monkeypatch.undo()
     exact = calcium.edge_fraction
     monkeypatch.setattr(calcium, "edge_fraction",
-                        lambda image, extent, near, spacing, blur, s: exact(image, extent, near, spacing, blur, s,
-                                                                           curvature=False))
+                        lambda image, extent, near, spacing, blur, s, **kwargs: exact(image, extent, near, spacing,
+                                                                                     blur, s, curvature=False))
     assert calcium_edge_error(image, sigma) > 0.3
+
+
+@pytest.mark.parametrize("sigma", [0.45, 0.6])
+def test_a_small_calcification_keeps_the_lumen_edge_with_the_blurred_ball_model(sigma):
+    # A 1 mm nodule is about one and a half blur widths across: the curvature shift, right for structures much
+    # wider than the blur, puts its edge 0.4-0.65 mm into the lumen; the blurred ball's own steepest point
+    # and ridge put it where it is.  The 1.5 mm nodule stays where it was.
+    small, _ = calcified_tube(sigma, radius=1.0)
+    assert abs(calcium_edge_error(small, sigma, balls=True)) < 0.15
+    assert calcium_edge_error(small, sigma) < -0.3
+    large, _ = calcified_tube(sigma)
+    assert abs(calcium_edge_error(large, sigma, balls=True)) < 0.15
+
+
+def test_the_blurred_balls_are_steepest_where_their_closed_forms_say():
+    radii, steepest = calcium.ball_flanks()
+    # A vanishing ball is steepest at the Gaussian's inflection; a wide one at its radius less (n - 1) / (2 R).
+    np.testing.assert_allclose(steepest[:, 0], 1.0, atol=0.01)
+    wide = radii == 5.0
+    np.testing.assert_allclose(steepest[:, wide].ravel(), [5.0, 5.0 - 1 / 10, 5.0 - 2 / 10], atol=0.01)
+    # A plate of half-thickness R (1-D) is steepest where its two edges' Gaussians balance:
+    # (r + R) g(r + R) = (r - R) g(r - R), checked at R = 1.
+    r = steepest[0, radii == 1.0][0]
+    assert (r + 1) * np.exp(-0.5 * (r + 1) ** 2) == pytest.approx((r - 1) * np.exp(-0.5 * (r - 1) ** 2), abs=2e-3)
+    # The radius from the steepest point inverts the table, for each dimension and between them.
+    np.testing.assert_allclose(calcium.ball_radius(steepest[2, 40:60], np.full(20, 2.0)), radii[40:60], atol=1e-6)
+    # For the same steepest point a rod is wider than a plate, and a shape between them lies between.
+    plate, between, rod = (calcium.ball_radius(np.array([2.0]), np.array([m]))[0] for m in (0.0, 0.5, 1.0))
+    assert plate < between < rod
 
 
 def test_nothing_hyperdense_leaves_the_image_alone():

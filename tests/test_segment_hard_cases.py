@@ -195,7 +195,7 @@ def test_calcified_stenosis_keeps_its_throat(monkeypatch):
     assert abs(nascet_error) <= 5.0 and abs(d_error) <= 0.25
     # Mutations: no calcium model (the blooming fills the throat), and the calcium's edge to the voxel only.
     assert errors(SegmentParameters(calcium_edge=False))[1] > 1.0
-    monkeypatch.setattr(calcium, "edge_fraction", lambda image, extent, *args: extent.astype(np.float32))
+    monkeypatch.setattr(calcium, "edge_fraction", lambda image, extent, *args, **kwargs: extent.astype(np.float32))
     assert errors()[1] > 0.25
 
 

@@ -317,7 +317,8 @@ def verdict_html(geometry: dict) -> str:
             ("local diameter (ECST reference)", f"{grade['local_diameter_mm']:.2f} mm"),
             ("location", stenosis_location(grade))]
     if grade.get("calcium_mm") is not None:
-        rows.append(("calcium", f"{grade['calcium_mm']:.1f} mm from the lumen at the stenosis"))
+        rows.append(("calcium", "against the lumen at the stenosis" if grade["calcium_mm"] == 0 else
+                     f"{grade['calcium_mm']:.1f} mm from the lumen at the stenosis"))
     notes = ("<p class='missing'>The narrowest section ends the measured branch: no distal reference, "
              "graded 0.</p>" if grade.get("distal_reference") == "none" else "")
     if calcified(grade):

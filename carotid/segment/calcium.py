@@ -35,8 +35,10 @@ the watershed scikit-image's.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
-from scipy import ndimage
+from scipy import ndimage, special, stats
 from skimage.segmentation import watershed
 
 from carotid.segment.intensity import region_box
@@ -48,8 +50,8 @@ TISSUE_FRACTION = 0.25
 
 
 def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: float, spacing_kji,
-                    blur_mm: float | None, reach_mm: float = 3.0,
-                    sigma_mm: float = 0.5) -> tuple[np.ndarray, np.ndarray, dict]:
+                    blur_mm: float | None, reach_mm: float = 3.0, sigma_mm: float = 0.5,
+                    balls: bool = False) -> tuple[np.ndarray, np.ndarray, dict]:
     """The image with each hyperdense structure (calcium, bone) and its blur replaced by the background.
 
     Parameters
@@ -67,6 +69,8 @@ def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: flo
     sigma_mm : float
         Gaussian smoothing (mm) of the image on which the decisions are taken; at least half the coarsest
         voxel, so that single noisy voxels of a coarse scan are not taken for calcium.
+    balls : bool
+        Place each structure's edge by the blurred-ball model (``edge_fraction(balls=True)``).
 
     Returns
     -------
@@ -105,7 +109,8 @@ def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: flo
     amplitude_max = 0.0
     if blur_mm and extent.any():
         fraction = np.zeros(image.shape, np.float32)
-        fraction[box] = edge_fraction(image[box], extent[box], near[box], spacing_kji, blur_mm, sigma_mm)
+        fraction[box] = edge_fraction(image[box], extent[box], near[box], spacing_kji, blur_mm, sigma_mm,
+                                      balls=balls)
         extent = fraction > 0.5
     # Everything below happens within the structures' box grown by their blur's reach: beyond it the image is
     # left as it is (a whole 256^3 image's filters took a second).
@@ -242,7 +247,7 @@ def structure_blur(image: np.ndarray, labels: np.ndarray, n: int, fraction: np.n
 
 
 def edge_fraction(image: np.ndarray, extent: np.ndarray, near: np.ndarray, spacing_kji, blur_mm: float,
-                  sigma_mm: float, curvature: bool = True) -> np.ndarray:
+                  sigma_mm: float, curvature: bool = True, balls: bool = False) -> np.ndarray:
     """Occupancy of each voxel by the structures, with the edge placed to a fraction of a voxel.
 
     A voxel-wise extent misplaces a structure's edge by up to a voxel, and the blur of a dense calcification
@@ -268,6 +273,11 @@ def edge_fraction(image: np.ndarray, extent: np.ndarray, near: np.ndarray, spaci
         The image's blur and the derivative filter's scale, mm.
     curvature : bool
         Add the curvature shift (off: the steepest point is taken for the edge).
+    balls : bool
+        Where the structure's ridge lies within ``RIDGE_REACH`` blur widths along the gradient, place the edge
+        by the blurred ball of ``ball_radius`` instead: the curvature shift is that model's limit for a
+        structure much wider than the blur, and wrong for a thinner one (a nodule of 1 mm, a calcified
+        layer against the lumen).
 
     Returns
     -------
@@ -297,6 +307,107 @@ def edge_fraction(image: np.ndarray, extent: np.ndarray, near: np.ndarray, spaci
     width = np.abs(n) @ spacing
     variance = blur_mm ** 2 + sigma_mm ** 2
     kappa = np.clip((second - laplacian) / np.maximum(slope, 1e-12), -2.0 / width, 2.0 / width)
-    x = -variance * second / np.maximum(slope, 1e-12) + (0.5 * variance * kappa if curvature else 0.0)
+    flank = -variance * second / np.maximum(slope, 1e-12)
+    x = flank + (0.5 * variance * kappa if curvature else 0.0)
+    if balls:
+        s = np.sqrt(variance)
+        ridge, found = ridge_distance(ndimage.gaussian_filter(image, sigma), boundary, n, spacing, RIDGE_REACH * s,
+                                      0.05 * s)
+        centre = ridge + flank  # from the steepest point to the ridge, mm
+        radius = s * ball_radius(np.maximum(centre, 0.0) / s, kappa * centre)
+        x = np.where(found & (centre < ball_flanks()[1][:, -1].min() * s), radius - ridge, x)
     fraction[boundary] = np.clip(0.5 + np.clip(x, -width, width) / width, 0.0, 1.0)
     return fraction
+
+
+# How far (blur widths, the image's and the derivative filter's together) the ridge of a structure is looked
+# for beyond its edge: past it a ball's steepest point and the curvature shift agree to 0.02 blur widths.
+RIDGE_REACH = 4.0
+
+
+def ridge_distance(smooth: np.ndarray, boundary: np.ndarray, normals: np.ndarray, spacing, reach_mm: float,
+                   step_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Distance (mm) from each boundary voxel to the brightest point of ``smooth`` along its normal.
+
+    Parameters
+    ----------
+    smooth : ndarray, float32, shape (nk, nj, ni)
+        The smoothed image.
+    boundary : ndarray of bool, same shape
+        The voxels, ``m`` of them.
+    normals : ndarray, shape (m, 3)
+        Unit vectors (k, j, i) towards the brighter side.
+    spacing : array_like, shape (3,)
+    reach_mm, step_mm : float
+        Length of the stretch sampled (trilinear) and the step along it, mm.
+
+    Returns
+    -------
+    distance : ndarray, shape (m,)
+    found : ndarray of bool, shape (m,)
+        Whether the brightest point lies strictly within the stretch (a ridge, not a rise beyond its end).
+    """
+    offsets = np.arange(0.0, reach_mm + 0.5 * step_mm, step_mm, dtype=np.float32)
+    points = np.stack(np.nonzero(boundary)).astype(np.float32)
+    per_mm = (np.asarray(normals, np.float32) / np.asarray(spacing, np.float32)).T
+    profile = np.stack([ndimage.map_coordinates(smooth, points + per_mm * u, order=1, mode="nearest")
+                        for u in offsets])
+    top = np.argmax(profile, axis=0)
+    return offsets[top].astype(float), (top > 0) & (top < offsets.size - 1)
+
+
+@functools.lru_cache(maxsize=None)
+def ball_flanks() -> tuple[np.ndarray, np.ndarray]:
+    """Where a blurred ball is steepest: ``r_s(R)`` for a ball of radius ``R`` in 1, 2 and 3 dimensions.
+
+    A ball of radius ``R`` (a plate of half-thickness ``R``, a rod, a nodule) blurred by a unit Gaussian has,
+    along a line through its centre, the profile ``Phi(R - r) - Phi(-R - r)`` (1-D), ``P(chi'^2_2(r^2) <=
+    R^2)`` (2-D, the noncentral chi-square) or ``(erf((R - r) / sqrt 2) + erf((R + r) / sqrt 2)) / 2 -
+    (exp(-(R - r)^2 / 2) - exp(-(R + r)^2 / 2)) / (r sqrt(2 pi))`` (3-D).  Its steepest point ``r_s`` tends
+    to the Gaussian's own inflection, 1, as ``R -> 0``, and to ``R - (n - 1) / (2 R)`` as ``R`` grows, the
+    curvature shift of ``edge_fraction``.
+
+    Returns
+    -------
+    radii : ndarray, shape (q,)
+        ``R``, 0 to 6 (units of the blur).
+    steepest : ndarray, shape (3, q)
+        ``r_s(R)`` for 1, 2 and 3 dimensions (non-decreasing).
+    """
+    radii = np.linspace(0.0, 6.0, 121)
+    steepest = np.empty((3, radii.size))
+    for row, dimension in enumerate((1, 2, 3)):
+        for column, radius in enumerate(np.maximum(radii, 1e-3)):
+            r = np.linspace(1e-3, radius + 5.0, 4001)
+            if dimension == 1:
+                profile = stats.norm.cdf(radius - r) - stats.norm.cdf(-radius - r)
+            elif dimension == 2:
+                profile = stats.ncx2.cdf(radius ** 2, 2, r ** 2)
+            else:
+                profile = 0.5 * (special.erf((radius - r) / np.sqrt(2)) + special.erf((radius + r) / np.sqrt(2))) - (
+                    np.exp(-0.5 * (radius - r) ** 2) - np.exp(-0.5 * (radius + r) ** 2)) / (r * np.sqrt(2 * np.pi))
+            steepest[row, column] = r[np.argmin(np.gradient(profile, r))]
+    return radii, np.maximum.accumulate(steepest, axis=1)
+
+
+def ball_radius(distance: np.ndarray, shape: np.ndarray) -> np.ndarray:
+    """Radius of the blurred ball whose steepest point lies ``distance`` from its centre (units of the blur).
+
+    ``shape`` is the isophote's curvature times that distance, ``n - 1`` for a ball in ``n`` dimensions: 0 for
+    a plate, 1 for a rod, 2 for a nodule; clipped to [0, 2] and interpolated between them (``ball_flanks``).
+
+    Parameters
+    ----------
+    distance, shape : ndarray, shape (m,)
+
+    Returns
+    -------
+    ndarray, shape (m,)
+    """
+    radii, steepest = ball_flanks()
+    per_dimension = np.stack([np.interp(distance, row, radii) for row in steepest])
+    shape = np.clip(shape, 0.0, 2.0)
+    low = np.minimum(np.floor(shape).astype(int), 1)
+    weight = shape - low
+    columns = np.arange(np.size(distance))
+    return per_dimension[low, columns] * (1.0 - weight) + per_dimension[low + 1, columns] * weight

@@ -63,6 +63,12 @@ class SegmentParameters:
         surroundings (``calcium`` module), instead of relying on the fold alone, whose edge lies inside the
         lumen next to a calcification (too tight a calcified stenosis) and whose blur on the tissue side
         looks like lumen (a leak into a vertebra, too mild a calcified stenosis).
+    calcium_balls : bool
+        Place a hyperdense structure's edge by the blurred ball (plate, rod or nodule) that has its steepest
+        point and its ridge where the image has them (``calcium.edge_fraction(balls=True)``), instead of the
+        steepest point moved out by the blur's curvature shift, which is right for structures much wider than
+        the blur and puts the edge of a 1 mm nodule 0.4-0.65 mm into the lumen.  Off: measured on part of the
+        family only (``benchmarks/README.md``).
     barrier : float
         Half level of the barrier (``barrier.half_level_barrier``): voxels darker than this fraction of the
         brightest lumen-like value within ``barrier_reach_mm`` push the front out (a blurred gap to an enhancing
@@ -205,6 +211,7 @@ class SegmentParameters:
     level_mm: float = 10.0
     fold: float = 0.0
     calcium_edge: bool = True
+    calcium_balls: bool = False
     barrier: float = 0.5
     barrier_reach_mm: float = 3.0
     plateau: float = 0.8
@@ -669,7 +676,7 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
     hyperdense, dense = None, None
     if params.calcium_edge:
         image, dense, hyperdense = hyperdense_edge(image, window[1], model.lumen, model.background, spacing,
-                                                   model.blur)
+                                                   model.blur, balls=params.calcium_balls)
     stops = None
     if stops_xyz is not None and len(stops_xyz):
         stops_xyz = np.atleast_2d(np.asarray(stops_xyz, float))
