@@ -21,7 +21,9 @@ taken for calcium); their extent is where a marker watershed (scikit-image)
 on the gradient magnitude, between the calcium cores and the lumen-level and
 tissue-level voxels around them, puts it: on the steepest edge, which for a
 blurred step is the half-way level, towards the lumen and towards the tissue
-alike.  Its blur, a Gaussian of the image's own width (``intensity.edge_blur``)
+alike, placed to a fraction of a voxel (``edge_fraction``: the steepest point
+moved out by the blur's curvature shift, or the edge of the blurred plate,
+rod or nodule whose steepest point and ridge lie where the image's do).  Its blur, a Gaussian of the image's own width (``intensity.edge_blur``)
 times an amplitude fitted on its tissue side, is subtracted from the image,
 so that the lumen next to it keeps only its own intensity; the structure
 itself becomes background, except within two blur widths of its edge, where
