@@ -67,8 +67,8 @@ class SegmentParameters:
         Place a hyperdense structure's edge by the blurred ball (plate, rod or nodule) that has its steepest
         point and its ridge where the image has them (``calcium.edge_fraction(balls=True)``), instead of the
         steepest point moved out by the blur's curvature shift, which is right for structures much wider than
-        the blur and puts the edge of a 1 mm nodule 0.4-0.65 mm into the lumen.  Off until measured on the
-        rescans and the benchmarks (``benchmarks/README.md``).
+        the blur and puts the edge of a 1 mm nodule 0.4-0.65 mm into the lumen.  Off: the tight throats beside
+        a nodule then read wider (``benchmarks/README.md``).
     barrier : float
         Half level of the barrier (``barrier.half_level_barrier``): voxels darker than this fraction of the
         brightest lumen-like value within ``barrier_reach_mm`` push the front out (a blurred gap to an enhancing
