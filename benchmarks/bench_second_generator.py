@@ -130,16 +130,17 @@ def main() -> None:
     for name, s in (("all cases", summary), ("true lumen graded at the lesion", at_lesion)):
         for method, m in s["methods"].items():
             print(f"{name}, {method}: ok {m['ok']}, meeting {m['meeting']}, median {m['median']}", flush=True)
-    for name, split in calcified_split(cases).items():
-        if isinstance(split, dict):
-            print(f"carotid, {name.replace('_', ' ')} at the lesion: {len(split['cases'])} cases "
-                  f"({split['with_drawn_calcium']} with calcium drawn), NASCET within 5 points on "
-                  f"{len(split['meeting_nascet_error_points'])}, minimal diameter within 0.25 mm on "
-                  f"{len(split['meeting_min_diameter_error_mm'])}", flush=True)
+    calcified_cases = calcified_split(cases)
+    for name in ("calcified", "not_calcified"):
+        split = calcified_cases[name]
+        print(f"carotid, {name.replace('_', ' ')} at the lesion: {len(split['cases'])} cases "
+              f"({split['with_drawn_calcium']} with calcium drawn), NASCET within 5 points on "
+              f"{len(split['meeting_nascet_error_points'])}, minimal diameter within 0.25 mm on "
+              f"{len(split['meeting_min_diameter_error_mm'])}", flush=True)
     write_results("second_generator", {
         "benchmark": "segmentation on a second phantom generator", "git": git, "jobs": args.jobs,
         "draw": {"seeds": seeds, "parameters_of_seed_0": draw(0)}, "cases": cases, "summary": summary,
-        "summary_graded_at_lesion": at_lesion, "at_lesion_mm": AT_LESION_MM, "calcified": calcified_split(cases),
+        "summary_graded_at_lesion": at_lesion, "at_lesion_mm": AT_LESION_MM, "calcified": calcified_cases,
         "total_seconds": time.perf_counter() - start}, quick=args.quick)
 
 

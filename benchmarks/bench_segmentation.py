@@ -99,7 +99,7 @@ import _vmtk
 from _common import GacSetting, GacStop, git_state, run_gac, timed, write_results
 from carotid.centerline import Branch, compute_centerlines, stenosis
 from carotid.centerline.axes import section_profile, section_radii
-from carotid.centerline.plaque import calcium_distance
+from carotid.centerline.plaque import annotate
 from carotid.errors import CarotidError
 from carotid.io import Volume, read_image
 from carotid.phantom import LABELS, make_phantom
@@ -254,8 +254,7 @@ def grade(levelset: np.ndarray, mask: np.ndarray, grid: Volume, calcium: np.ndar
            "centerline_seconds": seconds,
            "branches": [b.name for b in cl.branches]}
     if calcium is not None:
-        out["calcium_mm"] = calcium_distance(s["location_mm"], s["local_diameter_mm"], levelset,
-                                             grid.with_array(calcium))
+        out["calcium_mm"] = annotate(cl.info, levelset, grid.with_array(calcium))["stenosis"]["calcium_mm"]
     if s["branch"] == "ICA":
         out.update(half_width_grade(cl.branch("ICA"), levelset))
     return out
