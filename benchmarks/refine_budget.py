@@ -19,8 +19,9 @@ phantom's truth:
 * ``defaults``: ``segment``'s own result;
 * ``true_z_blur``: the through-plane blur given as the slice thickness that
   reproduces it (``bench_segmentation.recorded_thickness``);
-* ``true_blur``: that, and the phantom's in-plane blur in place of the
-  measured one;
+* ``true_blur``: that, and the phantom's in-plane blur (its Gaussian and its
+  one-voxel partial-volume ramp in quadrature, what ``edge_blur`` measures) in
+  place of the measured one;
 * ``true_levels``: ``A`` and ``B`` from the phantom, the lumen's level with
   its bolus fade (and the MR bias field), the tissue, fat and vein levels of
   the label map outside it;
@@ -178,11 +179,15 @@ def run_case(seed: int) -> dict:
         result, args = captured_segment(phantom, seeds_xyz)
         thickness = recorded_thickness(phantom)
         levels = true_levels(phantom, seed)
-        blur = phantom.info["blur_sigma_mm"]["in_plane"]
+        # The in-plane blur as the image holds it (edge_blur's measurand): the phantom's Gaussian and its
+        # partial-volume ramp one mean voxel wide, in quadrature.
+        blur = float(np.hypot(phantom.info["blur_sigma_mm"]["in_plane"],
+                              np.mean(phantom.image.spacing_kji) / np.sqrt(12.0)))
         if not prefix:
             case.update(modality=phantom.info["modality"], truth=phantom.info["stenosis"], truth_graded=truth,
                         recorded_thickness_mm=thickness,
-                        blur_mm={"measured": args[3].blur, "in_plane": blur, "z": phantom.info["blur_sigma_mm"]["z"]})
+                        blur_mm={"measured": args[3].blur, "in_plane": phantom.info["blur_sigma_mm"]["in_plane"],
+                                 "in_plane_with_ramp": blur, "z": phantom.info["blur_sigma_mm"]["z"]})
         sdf = np.asarray(phantom.sdf.array, np.float32)
         runs = {"defaults": lambda: {"levelset": result.levelset.array, "mask": result.mask.array > 0}}
         if not prefix:

@@ -348,7 +348,7 @@ def test_a_thick_slice_blurs_a_throat_along_the_vessel_and_the_model_does_too():
     """A 1.1 mm throat in 1.5 mm slices: the slice's boxcar fills the throat from the wider lumen on either
     side, and a model blurred along the vessel by the in-plane blur alone widens the throat to match."""
     image, spacing, sdf = throat_image(slices=5)
-    blur = float(np.hypot(0.6, 0.3 / np.sqrt(12)))  # what edge_blur measures within the slices
+    blur = deblur.gaussian_part(float(np.hypot(0.6, 0.3 / np.sqrt(12))), spacing)  # from what edge_blur measures
     # The middle slice is the throat's.
     assert radius_of(refine(image, sdf, spacing, A, B, blur), spacing) == pytest.approx(1.1, abs=0.035)
     # Mutation: the in-plane blur along every axis.
@@ -362,7 +362,7 @@ def test_overlapping_slices_blur_a_throat_by_their_thickness_not_their_spacing()
     little along the vessel and widens the short 1.1 mm throat to match; given the thickness, it finds it."""
     image, spacing, sdf = throat_image(slices=7, step=2, nc=25, length=1.0)
     assert spacing[0] == pytest.approx(0.6)
-    blur = float(np.hypot(0.6, 0.3 / np.sqrt(12)))  # what edge_blur measures within the slices
+    blur = deblur.gaussian_part(float(np.hypot(0.6, 0.3 / np.sqrt(12))), spacing)  # from what edge_blur measures
     assert radius_of(refine(image, sdf, spacing, A, B, blur, thickness_mm=2.1), spacing) == pytest.approx(
         1.1, abs=0.025)
     # Mutation: the slice spacing taken for the thickness.
@@ -371,6 +371,22 @@ def test_overlapping_slices_blur_a_throat_by_their_thickness_not_their_spacing()
     # Slices thinner than the pixels still integrate over their own thickness.
     np.testing.assert_allclose(deblur.axis_blur(0.05, [0.2, 0.5, 0.5], 0.2)[0], 0.2 / np.sqrt(12))
     assert deblur.reach_mm(0.6, spacing, 2.1) > deblur.reach_mm(0.6, spacing)
+
+
+def test_the_model_does_not_count_the_voxel_twice():
+    """A 1.1 mm throat in 0.5 mm voxels: the image's edges hold the voxel's boxcar as well as the scanner's
+    Gaussian, and ``edge_blur`` measures both; the model's lumen indicator carries that boxcar as its
+    partial-volume ramp, so its Gaussian is the measured blur less the ramp's variance.  Blurred by the whole
+    measured width, the model's throat is filled more than the image's, and it is matched with a wider wall."""
+    image, spacing, sdf = throat_image(slices=1, h=0.5, sigma=0.4, length=1.0, nc=24)
+    measured = float(np.hypot(0.4, 0.5 / np.sqrt(12)))  # edge_blur's reading (test_edge_blur_measures...)
+    assert deblur.gaussian_part(measured, spacing) == pytest.approx(0.4)
+    assert radius_of(refine(image, sdf, spacing, A, B, deblur.gaussian_part(measured, spacing)),
+                     spacing) == pytest.approx(1.1, abs=0.008)
+    # Mutation: the model blurred by the measured width, its ramp counted twice.
+    assert radius_of(refine(image, sdf, spacing, A, B, measured), spacing) > 1.1 + 0.012
+    # A reading narrower than the voxel's own boxcar keeps half of itself.
+    assert deblur.gaussian_part(0.1, [1.0, 1.0, 1.0]) == pytest.approx(0.05)
 
 
 def test_the_refinement_reads_its_level_set_only_within_its_reach():
@@ -564,7 +580,7 @@ def test_segment_takes_the_slice_thickness_from_the_scan_or_the_parameter():
         assert run.report["intensity"]["slice_thickness_source"] == {"spacing": "slice spacing"}.get(name, name)
     blur = runs["image"].report["intensity"]["blur_mm"]
     np.testing.assert_allclose(runs["image"].report["intensity"]["model_blur_kji_mm"],
-                               deblur.axis_blur(blur, spacing, 2.1))
+                               deblur.axis_blur(deblur.gaussian_part(blur, spacing), spacing, 2.1))
     radius = {name: radius_of(run.levelset.array, spacing) for name, run in runs.items()}
     assert abs(radius["image"] - 1.1) < abs(radius["spacing"] - 1.1) - 0.02
     # A parameter equal to the spacing gives the spacing's wall.
@@ -584,5 +600,6 @@ def test_a_measured_slice_blur_reaches_the_model_and_the_report(monkeypatch):
         measure_slice_blur=True, slice_thickness_mm=parameter)) for parameter in (0.0, 0.6)}
     measured = runs[0.0].report["intensity"]
     assert measured["slice_thickness_source"] == "measured"
-    assert measured["model_blur_kji_mm"][0] == pytest.approx(np.hypot(measured["blur_mm"], 0.5))
+    gaussian = deblur.gaussian_part(measured["blur_mm"], spacing)
+    assert measured["model_blur_kji_mm"][0] == pytest.approx(np.hypot(gaussian, 0.5))
     assert runs[0.6].report["intensity"]["slice_thickness_source"] == "parameter"

@@ -21,7 +21,7 @@ from carotid.io import Volume, atomic_dir, write_image, write_json
 from carotid.segment.barrier import (chamber_cores, chamber_neck, companion_basins, competing_region,
                                      half_level_barrier, half_maximum_speed, point_mask, under_enhanced)
 from carotid.segment.calcium import hyperdense_edge
-from carotid.segment.deblur import model_blur, reach_mm, refine
+from carotid.segment.deblur import gaussian_part, model_blur, reach_mm, refine
 from carotid.segment.handles import cavities, remove_handles
 from carotid.segment.init import automatic_region, check_points, mask_levelset, seed_levelset, seed_sample
 from carotid.segment.intensity import (VALIDATED_CONTRAST_TO_NOISE, IntensityModel, estimate_from_sample,
@@ -419,18 +419,19 @@ def slice_thickness(volume: Volume, params: SegmentParameters, model: IntensityM
 def deblur(image: np.ndarray, phi: np.ndarray, spacing_kji, model: IntensityModel, params: SegmentParameters,
            stopped: np.ndarray | None, dense: np.ndarray | None, thickness_mm: float | None = None) -> np.ndarray:
     """The converged front moved to the wall of the blurred lumen model that best explains ``image``
-    (``deblur.refine``), with the lumen level followed along the vessel and neighbours and calcium left out;
-    ``thickness_mm`` is the slice thickness (None: the slice spacing)."""
+    (``deblur.refine``, blurred by the Gaussian part of the measured blur, ``deblur.gaussian_part``), with the
+    lumen level followed along the vessel and neighbours and calcium left out; ``thickness_mm`` is the slice
+    thickness (None: the slice spacing)."""
     # The evolution's level set is clipped to its band; the refinement reads it out to reach_mm.
     phi = signed_distance(phi, spacing_kji, min(params.far_mm, reach_mm(model.blur, spacing_kji, thickness_mm)))
     exclude = stopped
     if dense is not None:
         exclude = dense if exclude is None else exclude | dense
-    return refine(image, phi, spacing_kji, model.lumen, model.background, model.blur, exclude,
-                  iterations=params.deblur_iterations, gain=params.deblur_gain, smooth_mm=params.deblur_smooth_mm,
-                  level_mm=params.level_mm, linear_level=params.deblur_linear_level, slices=params.deblur_slices,
-                  neighbours=params.deblur_neighbours,
-                  thickness_mm=thickness_mm)
+    return refine(image, phi, spacing_kji, model.lumen, model.background, gaussian_part(model.blur, spacing_kji),
+                  exclude, iterations=params.deblur_iterations, gain=params.deblur_gain,
+                  smooth_mm=params.deblur_smooth_mm, level_mm=params.level_mm,
+                  linear_level=params.deblur_linear_level, slices=params.deblur_slices,
+                  neighbours=params.deblur_neighbours, thickness_mm=thickness_mm)
 
 
 def lumen_levelset(phi: np.ndarray, stopped: np.ndarray | None, seeds_kji: np.ndarray | None, spacing_kji,
@@ -734,8 +735,8 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
     intensity = {**model.as_dict(), "window": [float(w) for w in lumen_window(model, params)], "hyperdense": hyperdense,
                  "window_source": "override" if params.window else "estimated",
                  "slice_thickness_mm": thickness, "slice_thickness_source": thickness_source,
-                 "model_blur_kji_mm": (model_blur(model.blur, spacing, params.deblur_slices, thickness).tolist()
-                                       if params.deblur and model.blur else None)}
+                 "model_blur_kji_mm": (model_blur(gaussian_part(model.blur, spacing), spacing, params.deblur_slices,
+                                                  thickness).tolist() if params.deblur and model.blur else None)}
     if level is not None:
         inside = phi < 0
         intensity["followed_lumen_level_percentiles_5_50_95"] = (
