@@ -169,11 +169,12 @@ def reach_mm(blur_mm: float, spacing_kji, thickness_mm: float | None = None) -> 
 def gaussian_part(blur_mm: float, spacing_kji) -> float:
     """The Gaussian (mm) of ``refine``'s model for a blur measured on the image's edges.
 
-    ``intensity.edge_blur`` measures the whole width of an edge, the voxel's own boxcar included, while
-    ``refine`` blurs a lumen indicator that already carries a partial-volume ramp one finest voxel ``h`` wide,
-    whose slope is a boxcar of variance ``h^2 / 12`` across the wall.  Blurring it by the measured width
-    counts that boxcar twice: the model's edge is wider than the image's (by 2-4 % in 0.4-0.5 mm voxels), and
-    a short, tight throat, which the blur fills from the wider lumen beside it, is matched with a wider wall.
+    ``intensity.edge_blur`` measures the whole width of an edge, whatever makes it (the scanner's point
+    spread, the voxel's extent), while ``refine`` blurs a lumen indicator that already carries a
+    partial-volume ramp one finest voxel ``h`` wide, whose slope is a boxcar of variance ``h^2 / 12`` across
+    the wall.  Blurred by the measured width, the model's edge is wider than the image's (by 1-6 % at blurs
+    of 0.4-0.8 mm in 0.4-0.5 mm voxels), and a short, tight throat, which the blur fills from the wider lumen
+    beside it, is matched with a wider wall.
     The Gaussian takes the rest of the variance, ``sqrt(blur_mm^2 - h^2 / 12)``, never less than half the
     measured blur.
 
