@@ -174,9 +174,8 @@ def gaussian_part(blur_mm: float, spacing_kji) -> float:
     partial-volume ramp one finest voxel ``h`` wide, whose slope is a boxcar of variance ``h^2 / 12`` across
     the wall.  Blurred by the measured width, the model's edge is wider than the image's (by 1-6 % at blurs
     of 0.4-0.8 mm in 0.4-0.5 mm voxels), and a short, tight throat, which the blur fills from the wider lumen
-    beside it, is matched with a wider wall.
-    The Gaussian takes the rest of the variance, ``sqrt(blur_mm^2 - h^2 / 12)``, never less than half the
-    measured blur.
+    beside it, is matched with a wider wall.  The Gaussian takes the rest of the variance,
+    ``sqrt(blur_mm^2 - h^2 / 12)``, never less than half the measured blur.
 
     Parameters
     ----------
