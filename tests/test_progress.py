@@ -17,7 +17,7 @@ import pytest
 import carotid.flow.simulate as flow_simulate
 from carotid.config import Config
 from carotid.phantom import write_phantom
-from carotid.pipeline import run
+from carotid.pipeline import PROGRESS_SECONDS, run
 from conftest import phantom
 
 # The demo's coarse chain with a quarter of a cycle (some 2000 steps, about 20 s) and the default checkpoint
@@ -119,10 +119,12 @@ def test_single_stage_simulate_reports_when_piped(piped_run, tmp_path):
     for name in ("mesh.vtu", "centerlines.vtp", "geometry.json"):
         shutil.copy(reference / name, case / name)
     start = time.monotonic()
-    proc = subprocess.run([sys.executable, "-m", "carotid", "simulate", str(case), "--cycles", "0.25"],
+    proc = subprocess.run([sys.executable, "-m", "carotid", "simulate", str(case), "--cycles", "0.5"],
                           capture_output=True, text=True, timeout=600)
     seconds = time.monotonic() - start
     assert proc.returncode == 0, proc.stderr
     periodic = [line for line in proc.stderr.splitlines() if re.match(r"simulate: \d+% after .*, ETA .*; step=\d+",
                                                                         line)]
-    assert seconds > 3 * 5.0 and len(periodic) >= 2, proc.stderr  # PROGRESS_SECONDS = 5
+    # A line at least every PROGRESS_SECONDS (5 s) of the stage, which starts a few seconds into the process:
+    # the count follows the machine's speed (13-26 s here), and a silent stage fails on any machine.
+    assert len(periodic) >= max(1, int(seconds // PROGRESS_SECONDS) - 2), (seconds, proc.stderr)
