@@ -223,8 +223,12 @@ def remesh_wall(surface: Surface, size: float) -> pv.PolyData:
     # the polish keeps the sizes gmsh reached: the mean length of the edges at the nearest new vertex
     mean = local_edge_length(points, triangles, neighbours=False)
     nearest = cKDTree(points)
+
+    def reached(x):
+        return mean[nearest.query(x)[1]]
+
     for rounds in range(POLISH_ROUNDS, POLISH_MAX_ROUNDS + 1):
-        polished = remesh(capped, lambda x: mean[nearest.query(x)[1]], iterations=rounds)
+        polished = remesh(capped, reached, iterations=rounds)
         if triangle_min_angles(np.asarray(polished.points), polished.regular_faces).min() >= POLISH_TARGET_DEG:
             break
     return polished

@@ -122,7 +122,7 @@ def refine(image: np.ndarray, phi: np.ndarray, spacing_kji, lumen: float, backgr
     sigma_axes = model_blur(sigma_mm, spacing, slices, thickness_mm)
     sigma = sigma_axes / spacing
     smoothing = np.hypot(sigma_axes, smooth_mm) / spacing
-    ramp = np.float32(spacing.min())
+    ramp = np.float32(ramp_width(spacing))
     step = np.float32(gain * sigma_mm)
     seen_tissue = ndimage.gaussian_filter(tissue, sigma)
     level = np.float32(lumen)
@@ -188,8 +188,12 @@ def gaussian_part(blur_mm: float, spacing_kji) -> float:
     -------
     float
     """
-    ramp = float(np.min(spacing_kji))
-    return float(np.sqrt(max(blur_mm ** 2 - ramp ** 2 / 12.0, 0.25 * blur_mm ** 2)))
+    return float(np.sqrt(max(blur_mm ** 2 - ramp_width(spacing_kji) ** 2 / 12.0, 0.25 * blur_mm ** 2)))
+
+
+def ramp_width(spacing_kji) -> float:
+    """Width (mm) of the partial-volume ramp of ``refine``'s lumen indicator: the finest voxel size."""
+    return float(np.min(spacing_kji))
 
 
 def model_blur(blur_mm: float, spacing_kji, slices: bool = True, thickness_mm: float | None = None) -> np.ndarray:
