@@ -176,6 +176,18 @@ def test_console_script_runs_the_demo(demo_run):
     assert dice >= 0.95
 
 
+def test_the_demo_passes_its_own_quality_checks(demo_run):
+    """What a new user sees first: the demo's report flags nothing (its wall layers follow the normal closely
+    enough to be read back from the mesh under every wall node, however sharp the flow divider)."""
+    from carotid.report.checks import quality_checks
+    from carotid.report.html import Case
+
+    case = Case.read(demo_run[1] / "case")
+    checks = quality_checks(case.segmentation, case.surface_quality, case.mesh_quality, case.flow)
+    assert {c.stage for c in checks} >= {"segmentation", "surface", "mesh", "flow"}
+    assert [c for c in checks if not c.passed] == []
+
+
 @pytest.mark.parametrize("option, value, field", [("--layers", "-3", "layers"), ("--layers", "1000", "layers"),
                                                   ("--lloyd", "-5", "lloyd_iterations"),
                                                   ("--thickness-ratio", "5", "thickness_ratio"),

@@ -19,7 +19,7 @@ from carotid.mesh.boundary import LABELS, cap_planes
 from carotid.mesh.command import register
 from carotid.mesh.core import boundary_faces, face_keys
 from carotid.mesh.io import split_cells
-from carotid.mesh.layers import split_prisms, tet_volumes, triangle_min_angles
+from carotid.mesh.layers import MAX_LEAN_DEG, build_layers, split_prisms, tet_volumes, triangle_min_angles
 from carotid.mesh.mesher import CORE_MIN_DIHEDRAL
 from carotid.mesh.quality import dihedral_angles, min_dihedral, prism_measures
 from carotid.mesh.smooth import lloyd_smooth
@@ -197,6 +197,32 @@ def test_bifurcation_mesh_is_valid(bifurcation_mesh):
     surface, mesh, quality = bifurcation_mesh
     check_valid(surface, mesh)
     assert quality["boundary_layer"]["growth_ratio"]["max_abs_error"] < 1e-9
+    # every column found again by an edge walk from the wall, beside the flow divider too
+    assert quality["boundary_layer"]["read_back_from_mesh"]["layers_found"]["min"] == N
+
+
+def test_layer_columns_stay_near_the_wall_normal_and_the_radius_is_the_walls():
+    """At the Y bifurcation's divider the smoothed directions lean by up to 47 degrees from the normal.  They
+    must stay within MAX_LEAN_DEG of it, and the local radius (which sets the thickness) is a property of the
+    wall: the same however much the directions are smoothed."""
+    surface = check_surface(labelled_bifurcation(size=0.6))
+    wall_tris = surface.triangles[surface.labels == 1]
+    smooth, rough = (build_layers(surface, layers=2, smoothing=s) for s in (10, 3))
+    wall = smooth.wall_vertices
+    area = np.cross(surface.points[wall_tris[:, 1]] - surface.points[wall_tris[:, 0]],
+                    surface.points[wall_tris[:, 2]] - surface.points[wall_tris[:, 0]])
+    normal = np.zeros((len(surface.points), 3))
+    for k in range(3):
+        np.add.at(normal, wall_tris[:, k], -area)
+    normal = normal[wall] / np.linalg.norm(normal[wall], axis=1, keepdims=True)
+    rim = np.isin(wall, surface.triangles[surface.labels != 1])  # projected onto the cap plane there
+    lean = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", smooth.directions, normal), -1.0, 1.0)))
+    assert lean[~rim].max() <= MAX_LEAN_DEG + 1e-6
+    assert lean[~rim].max() > 0.9 * MAX_LEAN_DEG  # the divider reaches the cone: the bound acts
+    np.testing.assert_array_equal(smooth.local_radius, rough.local_radius)
+    trunk = (surface.points[wall, 2] > -12.0) & (surface.points[wall, 2] < -5.0)  # a cylinder of radius 3 mm
+    assert np.median(smooth.local_radius[trunk]) == pytest.approx(3.0, rel=0.02)
+    np.testing.assert_allclose(smooth.local_radius[trunk], 3.0, rtol=0.1)  # vertex normals of 0.6 mm facets
 
 
 def test_severe_stenosis_meshes_validly_with_a_thinner_layer_in_the_throat(stenosis_mesh):

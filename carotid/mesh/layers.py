@@ -12,11 +12,14 @@ vertices, faces and prisms.
 Construction
 ------------
 * Inward directions: area-weighted vertex normals of the wall, smoothed by a
-  few Laplacian iterations; at a cap rim they are projected onto the cap
-  plane, so the layer continues inside the cap and the cap stays planar.
+  few Laplacian iterations and kept within ``MAX_LEAN_DEG`` of the normal;
+  at a cap rim they are projected onto the cap plane, so the layer
+  continues inside the cap and the cap stays planar.
 * Thickness per wall vertex: absolute, or ``thickness_ratio`` times the
   local radius, the radius of the largest inscribed ball touching the
-  vertex (shrinking-ball medial-axis estimate on the wall vertices).  It is
+  vertex (shrinking-ball medial-axis estimate on the wall vertices, along
+  the wall normals: a ball centred along a leaning direction is not tangent
+  to the wall and shrinks on the wall beside its vertex).  It is
   capped at ``max_fraction`` of that radius (with a warning when an absolute
   thickness had to be reduced), graded, and reduced locally until every
   tetrahedron of every prism column has a positive volume.
@@ -56,6 +59,12 @@ _PRISM_ROTATIONS = np.array([[0, 1, 2, 3, 4, 5], [1, 2, 0, 4, 5, 3], [2, 0, 1, 5
                              [3, 5, 4, 0, 2, 1], [4, 3, 5, 1, 0, 2], [5, 4, 3, 2, 1, 0]])
 _SPLIT_15 = np.array([[0, 1, 2, 5], [0, 1, 5, 4], [0, 4, 5, 3]])  # diagonal 1-5 on the face 1-2-5-4
 _SPLIT_24 = np.array([[0, 1, 2, 4], [0, 4, 2, 5], [0, 4, 5, 3]])  # diagonal 2-4
+
+MAX_LEAN_DEG = 30.0
+"""Largest angle (deg) between an extrusion direction and its vertex's wall normal.  The paper asks for the
+short edges of the layer's tetrahedra along the wall normal; a column leaning by 30 degrees still gains 87 %
+of its length in depth.  Smoothing alone leans the columns beside a sharp flow divider by up to 40
+degrees, where an edge walk from the wall no longer recognises them (``quality.walk_layers`` accepts 36.9)."""
 
 
 @dataclass(frozen=True)
@@ -220,27 +229,38 @@ def inscribed_radius(points: np.ndarray, inward: np.ndarray, iterations: int = 4
     return radius
 
 
-def _directions(points, wall_tris, wall, local_wall, rim_cap_normal, adjacency, smoothing, visibility_deg=5.0,
-                repairs=100):
-    """Unit inward directions at the wall vertices: smoothed, in-plane at cap rims, valid.
-
-    After smoothing, a direction must point into every incident wall face's
-    inner side by at least ``visibility_deg`` (else the first prism of that
-    face is inverted at any thickness); offending directions are pushed
-    along the inward normals of the faces they fail, a few vectorised rounds.
-    """
+def _inward_normals(points, wall_tris, local_wall, n_wall):
+    """Unit inward wall normals at the wall vertices (area-weighted means of the incident face normals)."""
     area = _face_normals(points, wall_tris)
-    normals = np.zeros((wall.size, 3))
+    normals = np.zeros((n_wall, 3))
     for k in range(3):
         np.add.at(normals, local_wall[:, k], area)
-    unit_face = _unit(area)
+    return -_unit(normals)
+
+
+def _directions(points, wall_tris, inward, local_wall, rim_cap_normal, adjacency, smoothing,
+                max_lean_deg=MAX_LEAN_DEG, visibility_deg=5.0, repairs=100):
+    """Unit inward directions at the wall vertices: smoothed, near the normal, in-plane at cap rims, valid.
+
+    The wall normals are smoothed by ``smoothing`` Laplacian iterations, so
+    that neighbouring columns stay nearly parallel where the wall curves;
+    a smoothed direction that leans more than ``max_lean_deg`` from its own
+    vertex's normal is turned back onto that cone.  A direction must then
+    point into every incident wall face's inner side by at least
+    ``visibility_deg`` (else the first prism of that face is inverted at any
+    thickness); offending directions are pushed along the inward normals of
+    the faces they fail, a few vectorised rounds.
+    """
+    unit_face = _unit(_face_normals(points, wall_tris))
 
     def project(d):
         return _unit(d - np.einsum("ij,ij->i", d, rim_cap_normal)[:, None] * rim_cap_normal)
 
-    directions = project(-_unit(normals))
+    normal = project(inward)
+    directions = normal
     for _ in range(smoothing):
         directions = project(directions + adjacency @ directions)
+    directions = project(_within_cone(directions, normal, max_lean_deg))
     margin = np.sin(np.radians(visibility_deg))
     for _ in range(repairs):
         dots = np.einsum("fki,fi->fk", directions[local_wall], unit_face)  # d . outward face normal
@@ -248,10 +268,20 @@ def _directions(points, wall_tris, wall, local_wall, rim_cap_normal, adjacency, 
         if not bad.any():
             break
         face = np.broadcast_to(np.arange(len(wall_tris))[:, None], bad.shape)[bad]
-        push = np.stack([np.bincount(local_wall[bad], weights=-unit_face[face, k], minlength=wall.size)
+        push = np.stack([np.bincount(local_wall[bad], weights=-unit_face[face, k], minlength=len(inward))
                          for k in range(3)], axis=1)
         directions = project(directions + 0.5 * push)
     return directions
+
+
+def _within_cone(directions, axes, max_angle_deg):
+    """Unit ``directions`` (n, 3) turned towards their unit ``axes`` (n, 3) where they lean further than
+    ``max_angle_deg``, onto the cone of that half-angle in the plane of the two."""
+    cos_lean = np.einsum("ij,ij->i", directions, axes)
+    limit = np.radians(max_angle_deg)
+    across = _unit(directions - cos_lean[:, None] * axes)
+    onto = np.cos(limit) * axes + np.sin(limit) * across
+    return np.where((cos_lean < np.cos(limit))[:, None], onto, directions)
 
 
 def _cap_follow(points, surface, wall_index, moved_wall):
@@ -388,8 +418,9 @@ def build_layers(surface: Surface, *, layers: int = 10, ratio: float = 1.2, thic
         rim_normal[on_rim[on_rim >= 0]] = normal
     local_wall = wall_index[wall_tris]
     adjacency = _adjacency(local_wall, wall.size)
-    directions = _directions(points, wall_tris, wall, local_wall, rim_normal, adjacency, smoothing)
-    radius = inscribed_radius(points[wall], directions)
+    inward = _inward_normals(points, wall_tris, local_wall, wall.size)
+    directions = _directions(points, wall_tris, inward, local_wall, rim_normal, adjacency, smoothing)
+    radius = inscribed_radius(points[wall], inward)
     requested = np.full(wall.size, thickness) if thickness is not None else thickness_ratio * radius
     limit = max_fraction * radius
     if thickness is not None and np.any(requested > limit):
