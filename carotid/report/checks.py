@@ -11,18 +11,20 @@ from pathlib import Path
 
 import numpy as np
 
+from carotid.mesh.mesher import CORE_MIN_DIHEDRAL
+
 # Near-occlusion on CTA (Bartlett et al., AJNR 2006;27:632-637): a residual lumen of at most 1.3 mm with a
 # collapsed distal ICA of at most 3.5 mm.  NASCET underestimates such a stenosis (its reference collapses),
 # so the category overrides the percentage.
 NEAR_OCCLUSION_RESIDUAL_MM = 1.3
 NEAR_OCCLUSION_DISTAL_MM = 3.5
 
-# Mesh quality limits.  Tetrahedra of the core flatter than 10 degrees degrade the pressure solve.  The wall
-# layers are flat by design: a right prism split into three tetrahedra has a smallest dihedral angle of about
-# its height over its edge (2.6 degrees at 0.04, the first of ten layers), and its largest is 90-100 degrees.
-# What spoils the wall gradients is a dihedral angle near 180 degrees (the maximum angle condition of linear
-# elements), from columns that twist or fan; 165 degrees is TetGen's default bound on it (``-q``).
-MIN_DIHEDRAL_CORE_DEG = 10.0
+# Mesh quality limits.  Tetrahedra of the core flatter than the mesher's floor (``CORE_MIN_DIHEDRAL``, which
+# it repairs by thinning the layer) degrade the pressure solve.  The wall layers are flat by design: a right
+# prism split into three tetrahedra has a smallest dihedral angle of about its height over its edge (2.6
+# degrees at 0.04, the first of ten layers), and its largest is 90-100 degrees.  What spoils the wall
+# gradients is a dihedral angle near 180 degrees (the maximum angle condition of linear elements), from
+# columns that twist or fan; 165 degrees is TetGen's default bound on it (``-q``).
 MAX_DIHEDRAL_LAYER_DEG = 165.0
 MIN_SURFACE_ANGLE_DEG = 15.0
 MAX_SPLIT_ERROR = 0.01  # absolute error of an outlet's flow fraction
@@ -104,7 +106,7 @@ def quality_checks(segmentation: dict, surface: dict, mesh: dict, flow: dict) ->
         ("surface", "smallest triangle angle (deg)", _get(surface, "min_angle_deg.min"),
          f">= {MIN_SURFACE_ANGLE_DEG:g}", lambda v: v >= MIN_SURFACE_ANGLE_DEG),
         ("mesh", "smallest dihedral angle, core (deg)", _get(mesh, "core.min_dihedral.min_deg"),
-         f">= {MIN_DIHEDRAL_CORE_DEG:g}", lambda v: v >= MIN_DIHEDRAL_CORE_DEG),
+         f">= {CORE_MIN_DIHEDRAL:g}", lambda v: v >= CORE_MIN_DIHEDRAL),
         ("mesh", "largest dihedral angle, wall layers (deg)", _get(mesh, "layer.max_dihedral_deg"),
          f"<= {MAX_DIHEDRAL_LAYER_DEG:g}", lambda v: v <= MAX_DIHEDRAL_LAYER_DEG),
         ("mesh", "wall layers found under every wall node, fewest",
