@@ -158,7 +158,7 @@ def rerun(args: tuple, seeds_kji, thickness=None, levels=None, start=None, blur=
     model = model if blur is None else replace(model, blur=blur)
     phi = phi if start is None else start
     with oracle_levels(*levels) if levels is not None else contextlib.nullcontext():
-        refined = segmentation.deblur(image, phi, spacing, model, params, stopped, dense, thickness)
+        refined, _ = segmentation.deblur(image, phi, spacing, model, params, stopped, dense, thickness)
     levelset, mask, _, _ = segmentation.lumen_levelset(refined, stopped, seeds_kji, spacing, params)
     return {"levelset": levelset, "mask": mask > 0}
 

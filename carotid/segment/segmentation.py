@@ -417,21 +417,31 @@ def slice_thickness(volume: Volume, params: SegmentParameters, model: IntensityM
 
 
 def deblur(image: np.ndarray, phi: np.ndarray, spacing_kji, model: IntensityModel, params: SegmentParameters,
-           stopped: np.ndarray | None, dense: np.ndarray | None, thickness_mm: float | None = None) -> np.ndarray:
+           stopped: np.ndarray | None, dense: np.ndarray | None,
+           thickness_mm: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The converged front moved to the wall of the blurred lumen model that best explains ``image``
     (``deblur.refine``, blurred by the Gaussian part of the measured blur, ``deblur.gaussian_part``), with the
     lumen level followed along the vessel and neighbours and calcium left out; ``thickness_mm`` is the slice
-    thickness (None: the slice spacing)."""
+    thickness (None: the slice spacing).
+
+    Returns
+    -------
+    phi : ndarray, float32, ``image``'s shape
+        The refined level set.
+    blur_kji_mm : ndarray, shape (3,)
+        The standard deviation (mm) per axis of the model's blur (``deblur.model_blur``).
+    """
     # The evolution's level set is clipped to its band; the refinement reads it out to reach_mm.
     phi = signed_distance(phi, spacing_kji, min(params.far_mm, reach_mm(model.blur, spacing_kji, thickness_mm)))
     exclude = stopped
     if dense is not None:
         exclude = dense if exclude is None else exclude | dense
-    return refine(image, phi, spacing_kji, model.lumen, model.background, gaussian_part(model.blur, spacing_kji),
-                  exclude, iterations=params.deblur_iterations, gain=params.deblur_gain,
-                  smooth_mm=params.deblur_smooth_mm, level_mm=params.level_mm,
-                  linear_level=params.deblur_linear_level, slices=params.deblur_slices,
-                  neighbours=params.deblur_neighbours, thickness_mm=thickness_mm)
+    sigma = gaussian_part(model.blur, spacing_kji)
+    refined = refine(image, phi, spacing_kji, model.lumen, model.background, sigma, exclude,
+                     iterations=params.deblur_iterations, gain=params.deblur_gain, smooth_mm=params.deblur_smooth_mm,
+                     level_mm=params.level_mm, linear_level=params.deblur_linear_level, slices=params.deblur_slices,
+                     neighbours=params.deblur_neighbours, thickness_mm=thickness_mm)
+    return refined, model_blur(sigma, spacing_kji, params.deblur_slices, thickness_mm)
 
 
 def lumen_levelset(phi: np.ndarray, stopped: np.ndarray | None, seeds_kji: np.ndarray | None, spacing_kji,
@@ -727,16 +737,15 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
     if params.join_contrast > 0 and seeds_kji is not None and len(seeds_kji) > 1:
         phi, joins = join_seeds(image, phi, seeds_kji, spacing, model.lumen, model.background,
                                 model.blur or float(np.max(spacing)), stopped, params.join_contrast)
-    thickness, thickness_source = None, "no refinement"
+    thickness, thickness_source, model_blur_kji = None, "no refinement", None
     if params.deblur and model.blur:
         thickness, thickness_source = slice_thickness(volume, params, model)
-        phi = deblur(image, phi, spacing, model, params, stopped, dense, thickness)
+        phi, model_blur_kji = deblur(image, phi, spacing, model, params, stopped, dense, thickness)
     timings["evolution_s"] = time.perf_counter() - t1
     intensity = {**model.as_dict(), "window": [float(w) for w in lumen_window(model, params)], "hyperdense": hyperdense,
                  "window_source": "override" if params.window else "estimated",
                  "slice_thickness_mm": thickness, "slice_thickness_source": thickness_source,
-                 "model_blur_kji_mm": (model_blur(gaussian_part(model.blur, spacing), spacing, params.deblur_slices,
-                                                  thickness).tolist() if params.deblur and model.blur else None)}
+                 "model_blur_kji_mm": None if model_blur_kji is None else model_blur_kji.tolist()}
     if level is not None:
         inside = phi < 0
         intensity["followed_lumen_level_percentiles_5_50_95"] = (
