@@ -5,9 +5,9 @@ import pytest
 from scipy import ndimage
 
 from carotid.errors import CarotidError
-from carotid.phantom import LABELS
+from carotid.phantom import LABELS, make_phantom, sample_family
 from carotid.segment import SegmentParameters, segment
-from carotid.segment.init import seed_levelset
+from carotid.segment.init import fork_score, seed_levelset
 from carotid.segment.intensity import local_level, lumen_noise
 from carotid.segment.metrics import dice, surface_distances, topology
 from conftest import ACCURACY_CASES, phantom
@@ -193,3 +193,37 @@ def test_lumen_levelset_fills_the_cavities_a_front_or_a_held_out_pit_leaves():
     assert topology(mask > 0) == {"components": 1, "handles": 0}
     for voxel in (pit, held):
         assert out[voxel] == pytest.approx(-3.0, abs=0.45)
+
+
+def _tube(shape, spacing, start, end, radius):
+    """Voxels within ``radius`` (mm) of the segment from ``start`` to ``end`` (mm, k j i)."""
+    points = np.stack(np.meshgrid(*[np.arange(n) * h for n, h in zip(shape, spacing)], indexing="ij"), axis=-1)
+    a, b = np.asarray(start, float), np.asarray(end, float)
+    t = np.clip(((points - a) @ (b - a)) / ((b - a) @ (b - a)), 0.0, 1.0)
+    return np.linalg.norm(points - (a + t[..., None] * (b - a)), axis=-1) <= radius
+
+
+def test_a_fork_scores_near_one_a_single_or_double_tube_near_zero():
+    spacing, shape = np.array([0.5, 0.5, 0.5]), (120, 50, 50)
+    trunk = _tube(shape, spacing, (0, 12.5, 12.5), (30, 12.5, 12.5), 3.0)
+    fork = trunk | _tube(shape, spacing, (30, 12.5, 12.5), (59, 12.5, 5.0), 2.2) | _tube(
+        shape, spacing, (30, 12.5, 12.5), (59, 12.5, 20.0), 1.8)
+    straight = _tube(shape, spacing, (0, 12.5, 12.5), (59, 12.5, 12.5), 3.0)
+    pair = _tube(shape, spacing, (0, 12.5, 5.0), (59, 12.5, 5.0), 2.0) | _tube(
+        shape, spacing, (0, 12.5, 20.0), (59, 12.5, 20.0), 2.0)
+    assert fork_score(fork, spacing, 5.0) > 0.8
+    assert fork_score(fork[::-1], spacing, 5.0) > 0.8  # the fork at the bottom
+    assert fork_score(straight, spacing, 5.0) == 0.0
+    assert fork_score(pair, spacing, 5.0) == 0.0
+
+
+@pytest.mark.parametrize("seed, decoy", [(1, "bone"), (18, "vein")])
+def test_automatic_initialisation_finds_the_forking_artery_not_a_brighter_tube(seed, decoy):
+    """Family 1 (CT): a bone below the window's top is brighter than the lumen; family 18 (MR): under the bias
+    field the jugular vein is.  Without seeds the start is the structure that forks (before: the decoy, Dice 0)."""
+    p = make_phantom(**sample_family(seed))
+    result = segment(p.image, params=SegmentParameters())
+    seg, truth = result.mask.array > 0, p.mask.array > 0
+    assert result.report["initialisation"] == "automatic"
+    assert dice(seg, truth) >= 0.92
+    assert np.count_nonzero(seg & (p.labels.array == LABELS[decoy])) < 0.02 * np.count_nonzero(truth)

@@ -111,7 +111,8 @@ def mask_levelset(mask: np.ndarray, spacing_kji) -> np.ndarray:
 
 def automatic_region(image01: np.ndarray, ghat: np.ndarray, spacing_kji, excluded: np.ndarray | None = None,
                      min_volume_mm3: float = 10.0, min_length_mm: float = 10.0, min_depth_mm: float = 1.0,
-                     min_core_mm: float = 1.5, core: float = -0.5) -> np.ndarray:
+                     min_core_mm: float = 1.5, core: float = -0.5, fork_fit: float = 0.75,
+                     fork_mm: float = 5.0) -> np.ndarray:
     """Find the arterial lumen's core without a seed.
 
     Candidates are voxels deep inside bright structures (``ghat < core``),
@@ -120,10 +121,17 @@ def automatic_region(image01: np.ndarray, ghat: np.ndarray, spacing_kji, exclude
     rims that blur leaves around cortical bone and calcium) are split into
     connected regions; those at least ``min_volume_mm3`` large, ``min_length_mm``
     long and ``min_core_mm`` deep somewhere (a carotid's core is several mm
-    across; the cortex of a bone is a thin shell) are kept, and the one that is brightest and
-    homogeneous (largest median minus one robust standard deviation: in an
-    angiogram the arteries carry more contrast than the veins, and bone mixes
-    bright cortex with darker marrow) is returned.
+    across; the cortex of a bone is a thin shell) are kept.  A carotid
+    bifurcation is one tube that forks into two (``fork_score``), a jugular
+    vein one tube and bone an irregular set of pieces, and brightness alone
+    cannot tell them apart (a vein brighter than the artery under an MR
+    bias field, dense bone below the window's top in CT): the candidates
+    that fork (a score of at least ``fork_fit``, each side at least
+    ``fork_mm`` long) are preferred.  Among those kept (or all, when none
+    forks) the one that is brightest and homogeneous (largest median minus
+    one robust standard deviation: in an angiogram the arteries carry more
+    contrast than the veins, and bone mixes bright cortex with darker
+    marrow) is returned.
 
     Returns
     -------
@@ -156,6 +164,54 @@ def automatic_region(image01: np.ndarray, ghat: np.ndarray, spacing_kji, exclude
     ok = (volumes >= min_volume_mm3) & (lengths >= min_length_mm) & (thickness >= min_core_mm)
     if not ok.any():
         raise CarotidError("automatic initialisation found no vessel-like structure; give a --seed")
+    forks = np.zeros(n, bool)
+    forks[ok] = [fork_score(labels[slices[i]] == i + 1, spacing_kji, fork_mm) >= fork_fit for i in np.flatnonzero(ok)]
+    if forks.any():
+        ok = forks
     score = medians - MAD_TO_SD * spreads
     best = index[ok][np.argmax(score[ok])]
     return labels == best
+
+
+def fork_score(region: np.ndarray, spacing_kji, min_mm: float, min_area_mm2: float = 2.0) -> float:
+    """How well a region reads as one tube forking into two, from its cross-sections along its longest axis.
+
+    Each slice across that axis holds some pieces (connected within the slice, at least ``min_area_mm2``).
+    A bifurcation is one piece up to some slice and two beyond it (or the reverse); the score is, over the
+    steps that leave at least ``min_mm`` on either side, the largest of the smaller of the fraction of slices
+    with one piece on the one side and with two on the other (0 when no step leaves that much).  A straight
+    tube scores 0, a clean fork about 1.
+
+    Parameters
+    ----------
+    region : ndarray of bool, shape (nk, nj, ni)
+    spacing_kji : array_like, shape (3,)
+    min_mm : float
+        Shortest stretch (mm) of one piece and of two.
+    min_area_mm2 : float
+        Smallest piece counted.
+
+    Returns
+    -------
+    float
+    """
+    spacing = np.asarray(spacing_kji, float)
+    axis = int(np.argmax(np.asarray(region.shape) * spacing))
+    within = np.zeros((3, 3, 3), bool)
+    centre = [slice(None)] * 3
+    centre[axis] = 1
+    within[tuple(centre)] = ndimage.generate_binary_structure(2, 2)
+    pieces, n = ndimage.label(region, structure=within)
+    if n == 0:
+        return 0.0
+    area = ndimage.sum_labels(np.ones(pieces.shape, np.float32), pieces, np.arange(1, n + 1)) * (
+        float(np.prod(spacing)) / spacing[axis])
+    where = np.array([s[axis].start for s in ndimage.find_objects(pieces)])
+    counts = np.bincount(where[area >= min_area_mm2], minlength=region.shape[axis])
+    one, two = np.cumsum(counts == 1), np.cumsum(counts == 2)
+    total, step = len(counts), np.arange(1, len(counts))
+    before, after = step, total - step
+    one_two = np.minimum(one[:-1] / before, (two[-1] - two[:-1]) / after)  # one piece before the step, two after
+    two_one = np.minimum(two[:-1] / before, (one[-1] - one[:-1]) / after)
+    room = (before * spacing[axis] >= min_mm) & (after * spacing[axis] >= min_mm)
+    return float(np.max(np.where(room, np.maximum(one_two, two_one), 0.0), initial=0.0))
