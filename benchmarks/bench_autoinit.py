@@ -28,10 +28,8 @@ from _common import git_state, write_results
 from carotid.phantom import LABELS, make_phantom, sample_family
 from carotid.segment import SegmentParameters, segment
 from carotid.segment.init import automatic_region
-from carotid.segment.intensity import provisional_window
 from carotid.segment.metrics import dice
-from carotid.segment.preprocess import window_hu
-from carotid.segment.segmentation import speed_fields
+from carotid.segment.segmentation import automatic_inputs
 from second_generator import make_second_phantom
 
 RULES = {"brightest": 1.01, "forking": 0.75}  # fork_fit: above 1 no candidate counts as a fork
@@ -41,14 +39,11 @@ NAMES = {value: name for name, value in LABELS.items()}
 def pick(phantom) -> dict:
     """What each rule's start lies in, and how long the default one took (s)."""
     image, spacing = phantom.image.array, np.asarray(phantom.image.spacing_kji, float)
-    params = SegmentParameters().validate()
-    low, high, ceiling = provisional_window(image)
-    image01 = window_hu(image, low, high, fold=0.0)
-    ghat, _ = speed_fields(image01, spacing, *params.stages(spacing)[0][:2], params)
+    image01, ghat, excluded = automatic_inputs(image, image, spacing, SegmentParameters().validate())
     out = {}
     for rule, fit in RULES.items():
         start = time.perf_counter()
-        region = automatic_region(image01, ghat, spacing, excluded=image > ceiling, fork_fit=fit)
+        region = automatic_region(image01, ghat, spacing, excluded=excluded, fork_fit=fit)
         inside = float(np.mean(phantom.mask.array[region] > 0))
         values, counts = np.unique(phantom.labels.array[region & ~(phantom.mask.array > 0)], return_counts=True)
         out[rule] = {"in_lumen_fraction": inside, "lumen": inside > 0.5,

@@ -356,13 +356,47 @@ def check_image(volume: Volume) -> None:
 
 def speed_fields(image01: np.ndarray, spacing_kji, radius_mm: float, sigma_mm: float,
                  params: SegmentParameters, barrier: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Normalised potential ``Ghat = tanh(G / potential_scale)`` (+1 on ``barrier``) and edge-stopping ``g``."""
-    ghat = gpf_potential(image01, spacing_kji, radius_mm, sigma_mm)
-    ghat /= np.float32(params.potential_scale)
-    np.tanh(ghat, out=ghat)
+    """Normalised potential ``Ghat`` (``normalised_potential``, +1 on ``barrier``) and edge-stopping ``g``."""
+    ghat = normalised_potential(image01, spacing_kji, radius_mm, sigma_mm, params)
     if barrier is not None:
         ghat[barrier] = 1.0
     return ghat, edge_stopping(image01, spacing_kji, params.edge_beta, sigma_mm)
+
+
+def normalised_potential(image01: np.ndarray, spacing_kji, radius_mm: float, sigma_mm: float,
+                         params: SegmentParameters) -> np.ndarray:
+    """The GPF potential squashed to (-1, 1): ``Ghat = tanh(G / potential_scale)`` (float32)."""
+    ghat = gpf_potential(image01, spacing_kji, radius_mm, sigma_mm)
+    ghat /= np.float32(params.potential_scale)
+    return np.tanh(ghat, out=ghat)
+
+
+def automatic_inputs(image: np.ndarray, source: np.ndarray, spacing_kji,
+                     params: SegmentParameters) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What the seedless start (``init.automatic_region``) is found on.
+
+    Parameters
+    ----------
+    image : ndarray, shape (nk, nj, ni)
+        The image the evolution reads (denoised on request).
+    source : ndarray, same shape
+        The image as given, whose voxels above the provisional window's ceiling are too bright to be lumen.
+    spacing_kji : array_like, shape (3,)
+    params : SegmentParameters
+
+    Returns
+    -------
+    image01 : ndarray, float32
+        ``image`` in the provisional window (``intensity.provisional_window``, or ``params.window``).
+    ghat : ndarray, float32
+        The capture stage's normalised potential on it.
+    excluded : ndarray of bool
+        The voxels above the ceiling.
+    """
+    low, high, ceiling = provisional_window(image)
+    image01 = window_hu(image, *(params.window or (low, high)), fold=0.0)
+    ghat = normalised_potential(image01, spacing_kji, *params.stages(spacing_kji)[0][:2], params)
+    return image01, ghat, source > ceiling
 
 
 def contrast_units(image01: np.ndarray, window, model: IntensityModel, level=None) -> np.ndarray:
@@ -676,10 +710,8 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
     if params.denoise_iterations:
         image = denoise(volume, params.denoise_iterations).array
     if phi is None:
-        low, high, ceiling = provisional_window(image)
-        image01 = window_hu(image, *(params.window or (low, high)), fold=0.0)
-        ghat, g = speed_fields(image01, spacing, *params.stages(spacing)[0][:2], params)
-        region = automatic_region(image01, ghat, spacing, excluded=source > ceiling)
+        image01, ghat, excluded = automatic_inputs(image, source, spacing, params)
+        region = automatic_region(image01, ghat, spacing, excluded=excluded)
         phi = mask_levelset(region, spacing)
         sample = lumen_sample(source, region)
     model = estimate_from_sample(source, sample, spacing, {"seed": "seeds"}.get(how, how))
