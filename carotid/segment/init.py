@@ -173,14 +173,84 @@ def automatic_region(image01: np.ndarray, ghat: np.ndarray, spacing_kji, exclude
     return labels == best
 
 
+def slice_pieces(region: np.ndarray, spacing_kji, min_area_mm2: float = 2.0) -> tuple[int, np.ndarray, np.ndarray]:
+    """Cross-sections of a region along its longest axis: the pieces of each slice and how many there are.
+
+    Parameters
+    ----------
+    region : ndarray of bool, shape (nk, nj, ni)
+    spacing_kji : array_like, shape (3,)
+    min_area_mm2 : float
+        Smallest piece counted.
+
+    Returns
+    -------
+    axis : int
+        The longest axis (mm).
+    pieces : ndarray of int, same shape as ``region``
+        Labels of the pieces, each connected within one slice across ``axis`` (0 outside).
+    counts : ndarray of int, shape (region.shape[axis],)
+        Pieces of at least ``min_area_mm2`` in each slice.
+    """
+    spacing = np.asarray(spacing_kji, float)
+    axis = int(np.argmax(np.asarray(region.shape) * spacing))
+    within = np.zeros((3, 3, 3), bool)
+    centre = [slice(None)] * 3
+    centre[axis] = 1
+    within[tuple(centre)] = ndimage.generate_binary_structure(2, 2)
+    pieces, n = ndimage.label(region, structure=within)
+    if n == 0:
+        return axis, pieces, np.zeros(region.shape[axis], int)
+    area = ndimage.sum_labels(np.ones(pieces.shape, np.float32), pieces, np.arange(1, n + 1)) * (
+        float(np.prod(spacing)) / spacing[axis])
+    where = np.array([s[axis].start for s in ndimage.find_objects(pieces)])
+    return axis, pieces, np.bincount(where[area >= min_area_mm2], minlength=region.shape[axis])
+
+
+def fork_step(counts: np.ndarray, step_mm: float, min_mm: float) -> tuple[float, int, bool]:
+    """The step along the slices that best splits them into one piece on one side and two on the other.
+
+    The score of a step is the smaller of the fraction of slices with one piece on the one side and with two
+    on the other; only steps that leave at least ``min_mm`` on either side count.
+
+    Parameters
+    ----------
+    counts : ndarray of int, shape (n,)
+        Pieces per slice (``slice_pieces``).
+    step_mm : float
+        Slice spacing, mm.
+    min_mm : float
+        Shortest stretch (mm) of one piece and of two.
+
+    Returns
+    -------
+    score : float
+        The best step's score, 0 when no step leaves ``min_mm`` on both sides.
+    step : int
+        Slices before the step.
+    trunk_first : bool
+        True when the one-piece side comes first (lower slice indices).
+    """
+    one, two = np.cumsum(counts == 1), np.cumsum(counts == 2)
+    total, step = len(counts), np.arange(1, len(counts))
+    before, after = step, total - step
+    if not len(step):
+        return 0.0, 0, True
+    one_two = np.minimum(one[:-1] / before, (two[-1] - two[:-1]) / after)  # one piece before the step, two after
+    two_one = np.minimum(two[:-1] / before, (one[-1] - one[:-1]) / after)
+    room = (before * step_mm >= min_mm) & (after * step_mm >= min_mm)
+    scores = np.where(room, np.maximum(one_two, two_one), 0.0)
+    best = int(np.argmax(scores))
+    return float(scores[best]), int(step[best]), bool(one_two[best] >= two_one[best])
+
+
 def fork_score(region: np.ndarray, spacing_kji, min_mm: float, min_area_mm2: float = 2.0) -> float:
     """How well a region reads as one tube forking into two, from its cross-sections along its longest axis.
 
-    Each slice across that axis holds some pieces (connected within the slice, at least ``min_area_mm2``).
-    A bifurcation is one piece up to some slice and two beyond it (or the reverse); the score is, over the
-    steps that leave at least ``min_mm`` on either side, the largest of the smaller of the fraction of slices
-    with one piece on the one side and with two on the other (0 when no step leaves that much).  A straight
-    tube scores 0, a clean fork about 1.
+    Each slice across that axis holds some pieces (``slice_pieces``).  A bifurcation is one piece up to some
+    slice and two beyond it (or the reverse); the score is the best step's (``fork_step``): the smaller of the
+    fraction of slices with one piece on the one side and with two on the other.  A straight tube scores 0, a
+    clean fork about 1.
 
     Parameters
     ----------
@@ -195,23 +265,54 @@ def fork_score(region: np.ndarray, spacing_kji, min_mm: float, min_area_mm2: flo
     -------
     float
     """
+    axis, _, counts = slice_pieces(region, spacing_kji, min_area_mm2)
+    return fork_step(counts, float(np.asarray(spacing_kji, float)[axis]), min_mm)[0]
+
+
+def fork_seeds(region: np.ndarray, spacing_kji, min_mm: float = 5.0, min_area_mm2: float = 2.0,
+               tip_mm: float = 5.0) -> np.ndarray | None:
+    """Seed points of a forking region: one in its trunk and one near the far end of each of its two branches.
+
+    The region is split at its best fork step (``fork_step``).  The trunk's seed is its deepest voxel (the
+    largest distance to the region's edge) among the one-piece slices; each branch is a connected part of the
+    two-piece slices beyond the step (the two largest), and its seed is its deepest voxel within ``tip_mm`` of
+    its far end.  Seeds so placed start the evolution in every branch, as a user's one seed per branch does,
+    so the seeded segmentation (and its exclusion of touching veins and chambers) runs without a user.
+
+    Parameters
+    ----------
+    region : ndarray of bool, shape (nk, nj, ni)
+        The seedless start (``automatic_region``).
+    spacing_kji : array_like, shape (3,)
+    min_mm, min_area_mm2 : float
+        As in ``fork_score``.
+    tip_mm : float
+        Length (mm) of a branch's end in which its seed is placed.
+
+    Returns
+    -------
+    ndarray, shape (3, 3), float, or None
+        Array indices (k, j, i) of the trunk's seed and the two branches', or None when the region does not
+        fork (no step, or fewer than two branches beyond it).
+    """
     spacing = np.asarray(spacing_kji, float)
-    axis = int(np.argmax(np.asarray(region.shape) * spacing))
-    within = np.zeros((3, 3, 3), bool)
-    centre = [slice(None)] * 3
-    centre[axis] = 1
-    within[tuple(centre)] = ndimage.generate_binary_structure(2, 2)
-    pieces, n = ndimage.label(region, structure=within)
-    if n == 0:
-        return 0.0
-    area = ndimage.sum_labels(np.ones(pieces.shape, np.float32), pieces, np.arange(1, n + 1)) * (
-        float(np.prod(spacing)) / spacing[axis])
-    where = np.array([s[axis].start for s in ndimage.find_objects(pieces)])
-    counts = np.bincount(where[area >= min_area_mm2], minlength=region.shape[axis])
-    one, two = np.cumsum(counts == 1), np.cumsum(counts == 2)
-    total, step = len(counts), np.arange(1, len(counts))
-    before, after = step, total - step
-    one_two = np.minimum(one[:-1] / before, (two[-1] - two[:-1]) / after)  # one piece before the step, two after
-    two_one = np.minimum(two[:-1] / before, (one[-1] - one[:-1]) / after)
-    room = (before * spacing[axis] >= min_mm) & (after * spacing[axis] >= min_mm)
-    return float(np.max(np.where(room, np.maximum(one_two, two_one), 0.0), initial=0.0))
+    axis, _, counts = slice_pieces(region, spacing, min_area_mm2)
+    score, step, trunk_first = fork_step(counts, float(spacing[axis]), min_mm)
+    if score <= 0:
+        return None
+    position = np.arange(region.shape[axis]).reshape([-1 if a == axis else 1 for a in range(3)])
+    trunk_side = position < step if trunk_first else position >= step
+    depth = ndimage.distance_transform_edt(region, sampling=spacing)
+    trunk = region & trunk_side & (counts == 1)[position]
+    branches, n = ndimage.label(region & ~trunk_side & (counts == 2)[position])
+    if not trunk.any() or n < 2:
+        return None
+    sizes = ndimage.sum_labels(np.ones(branches.shape, np.float32), branches, np.arange(1, n + 1))
+    seeds = [np.unravel_index(np.argmax(np.where(trunk, depth, 0.0)), region.shape)]
+    distal = position if trunk_first else -position
+    tip = int(np.ceil(tip_mm / spacing[axis]))
+    for label in np.argsort(sizes)[::-1][:2] + 1:
+        branch = branches == label
+        end = np.max(np.where(branch, distal, np.iinfo(np.int64).min))
+        seeds.append(np.unravel_index(np.argmax(np.where(branch & (distal > end - tip), depth, 0.0)), region.shape))
+    return np.array(seeds, float)

@@ -23,7 +23,8 @@ from carotid.segment.barrier import (chamber_cores, chamber_neck, companion_basi
 from carotid.segment.calcium import hyperdense_edge
 from carotid.segment.deblur import gaussian_part, model_blur, reach_mm, refine
 from carotid.segment.handles import cavities, remove_handles
-from carotid.segment.init import automatic_region, check_points, mask_levelset, seed_levelset, seed_sample
+from carotid.segment.init import (automatic_region, check_points, fork_seeds, mask_levelset, seed_levelset,
+                                  seed_sample)
 from carotid.segment.intensity import (VALIDATED_CONTRAST_TO_NOISE, IntensityModel, estimate_from_sample,
                                        local_level, local_radius, lumen_noise, provisional_window,
                                        through_plane_variance)
@@ -678,8 +679,9 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
         Stop points in world mm: the bright structure around each (up to the darkest surface between it and
         the seeds, ``barrier.stop_region``) is kept out of the lumen.
 
-    Without seeds and initial region the initialisation is automatic
-    (``automatic_region``).
+    Without seeds and initial region the initialisation is automatic: the core of the bright structure that
+    forks (``automatic_region``), and when it does fork, one seed in its trunk and one near the end of each
+    branch (``fork_seeds``, recorded as ``seeds_mm``), from which the segmentation runs as from a user's.
 
     Returns
     -------
@@ -712,8 +714,14 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
     if phi is None:
         image01, ghat, excluded = automatic_inputs(image, source, spacing, params)
         region = automatic_region(image01, ghat, spacing, excluded=excluded)
-        phi = mask_levelset(region, spacing)
-        sample = lumen_sample(source, region)
+        found = fork_seeds(region, spacing)
+        if found is None:
+            phi = mask_levelset(region, spacing)
+            sample = lumen_sample(source, region)
+        else:
+            seeds_xyz = volume.index_to_world(found)
+            phi, seeds_kji, sample = seed_start(volume, seeds_xyz, params.seed_radius_mm)
+        del image01, ghat, excluded
     model = estimate_from_sample(source, sample, spacing, {"seed": "seeds"}.get(how, how))
     window = lumen_window(model, params)
     hyperdense, dense = None, None
