@@ -69,6 +69,21 @@ def test_vein_as_bright_as_the_artery_beside_it_stays_out():
     assert vein_off > 0.5
 
 
+def test_a_seedless_start_seeds_each_branch_and_keeps_a_touching_vein_out(monkeypatch):
+    """The vein of ``test_vein_half_a_millimetre_away_stays_out`` without any seed: the forking start places
+    one seed in the CCA and one near the end of each branch, and the seeded path's exclusions act."""
+    p = vein_case(0.8, 0.7, 5)
+    result = segment(p.image)
+    overlap, vein = scores(p, result)
+    assert overlap >= 0.92 and vein < 0.01
+    seeds = np.round(p.image.world_to_index(np.asarray(result.report["seeds_mm"]))).astype(int)
+    assert len(seeds) == 3 and np.all(p.mask.array[tuple(seeds.T)] > 0)
+    # Started from the forking core alone, as before the seeds, the front runs along the vein.
+    monkeypatch.setattr("carotid.segment.segmentation.fork_seeds", lambda region, spacing: None)
+    _, vein_off = scores(p, segment(p.image))
+    assert vein_off > 0.5
+
+
 def test_stop_point_keeps_a_vein_out():
     """The same vein with the companions switched off, where the front runs along it
     (``test_vein_as_bright_as_the_artery_beside_it_stays_out``): the user marks it with a stop point."""

@@ -7,7 +7,7 @@ from scipy import ndimage
 from carotid.errors import CarotidError
 from carotid.phantom import LABELS, make_phantom, sample_family
 from carotid.segment import SegmentParameters, segment
-from carotid.segment.init import fork_score, seed_levelset
+from carotid.segment.init import automatic_region, fork_score, fork_seeds, seed_levelset
 from carotid.segment.intensity import local_level, lumen_noise
 from carotid.segment.metrics import dice, surface_distances, topology
 from conftest import ACCURACY_CASES, phantom
@@ -203,7 +203,9 @@ def _tube(shape, spacing, start, end, radius):
     return np.linalg.norm(points - (a + t[..., None] * (b - a)), axis=-1) <= radius
 
 
-def test_a_fork_scores_near_one_a_single_or_double_tube_near_zero():
+def _regions():
+    """A Y (trunk along k up to 30 mm, branches ending at k = 59 mm, i = 5 and 20 mm), a straight tube and
+    two parallel tubes, on 0.5 mm voxels."""
     spacing, shape = np.array([0.5, 0.5, 0.5]), (120, 50, 50)
     trunk = _tube(shape, spacing, (0, 12.5, 12.5), (30, 12.5, 12.5), 3.0)
     fork = trunk | _tube(shape, spacing, (30, 12.5, 12.5), (59, 12.5, 5.0), 2.2) | _tube(
@@ -211,10 +213,42 @@ def test_a_fork_scores_near_one_a_single_or_double_tube_near_zero():
     straight = _tube(shape, spacing, (0, 12.5, 12.5), (59, 12.5, 12.5), 3.0)
     pair = _tube(shape, spacing, (0, 12.5, 5.0), (59, 12.5, 5.0), 2.0) | _tube(
         shape, spacing, (0, 12.5, 20.0), (59, 12.5, 20.0), 2.0)
+    return spacing, fork, straight, pair
+
+
+def test_a_fork_scores_near_one_a_single_or_double_tube_near_zero():
+    spacing, fork, straight, pair = _regions()
     assert fork_score(fork, spacing, 5.0) > 0.8
     assert fork_score(fork[::-1], spacing, 5.0) > 0.8  # the fork at the bottom
     assert fork_score(straight, spacing, 5.0) == 0.0
     assert fork_score(pair, spacing, 5.0) == 0.0
+
+
+@pytest.mark.parametrize("flip", [False, True])
+def test_fork_seeds_lie_in_the_trunk_and_near_the_end_of_each_branch(flip):
+    spacing, fork, straight, pair = _regions()
+    seeds = fork_seeds(fork[::-1] if flip else fork, spacing) * spacing
+    if flip:
+        seeds[:, 0] = (fork.shape[0] - 1) * spacing[0] - seeds[:, 0]
+    trunk, branches = seeds[0], seeds[1:][np.argsort(seeds[1:, 2])]
+    assert trunk[0] <= 31.0 and abs(trunk[2] - 12.5) <= 1.0  # on the trunk's axis, before the branches part
+    assert np.all(branches[:, 0] > 59.0 - 5.0)  # within 5 mm of the branches' ends
+    assert np.allclose(branches[:, 2], [5.0 + 0.7, 20.0 - 0.5], atol=1.5)  # one on each branch's axis
+    assert fork_seeds(straight, spacing) is None and fork_seeds(pair, spacing) is None
+
+
+def test_a_fork_whose_thin_branch_has_no_deep_core_is_still_found():
+    """A Y whose thinner branch (1.4 mm radius) keeps no core of 2 mm^2 a millimetre deep, beside a brighter
+    straight tube: at the full depth nothing forks and the tube would be taken; at half the depth the Y forks."""
+    spacing, shape = np.array([0.5, 0.5, 0.5]), (120, 50, 90)
+    artery = _tube(shape, spacing, (0, 12.5, 12.5), (30, 12.5, 12.5), 3.0) | _tube(
+        shape, spacing, (30, 12.5, 12.5), (59, 12.5, 5.0), 2.2) | _tube(shape, spacing, (30, 12.5, 12.5),
+                                                                       (59, 12.5, 22.0), 1.4)
+    decoy = _tube(shape, spacing, (0, 12.5, 36.0), (59, 12.5, 36.0), 3.0)
+    image01 = np.where(decoy, 1.0, np.where(artery, 0.8, 0.0)).astype(np.float32)
+    ghat = np.where(artery | decoy, -1.0, 1.0).astype(np.float32)
+    region = automatic_region(image01, ghat, spacing)
+    assert not (region & decoy).any() and fork_seeds(region, spacing) is not None
 
 
 @pytest.mark.parametrize("seed, decoy", [(1, "bone"), (18, "vein")])
