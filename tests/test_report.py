@@ -193,6 +193,8 @@ def test_detail_tables_are_readable(demo_run):
     segmentation = json.loads((out / "case" / "segmentation" / "report.json").read_text())
     assert segmentation["wall"] is None  # the wall stage is off in the demo: none of its parameters show
     assert not re.search(r"<th>wall[ _]", page)
+    seeds = "; ".join("({:.1f}, {:.1f}, {:.1f})".format(*seed) for seed in segmentation["seeds_mm"])
+    assert f"<th>seeds (mm)</th><td>{seeds}</td>" in page  # the seeds the seedless start placed, in LPS mm
     captions = re.findall(r"<caption>(.*?)</caption>", page)
     assert len(captions) == len(set(captions)), "a table is printed twice"
     assert page.count("equivalent radius (mm)") == 1, "the caps are tabled once"

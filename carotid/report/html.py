@@ -690,6 +690,8 @@ def segmentation_section(case: Case) -> Section:
     for key in keep:
         if key in report:
             result[key] = report[key]
+        if key == "initialisation" and report.get("seeds_mm"):  # the user's, or placed in the forking start
+            result["seeds_mm"] = "; ".join("({:.1f}, {:.1f}, {:.1f})".format(*seed) for seed in report["seeds_mm"])
         if key == "topology":
             result.update(handles_removed_row(report.get("handles_removed") or []))
     section.tables.append(Table("Result", flatten(result)))
