@@ -82,6 +82,30 @@ def test_clipped_smoothed_surface_matches_truth(stenosis, noise, seed):
     assert abs(signed_volume(p1, f1) / signed_volume(p0, f0) - 1.0) <= 0.01
 
 
+def test_an_elliptic_end_whose_axis_radius_tapers_is_clipped_flat():
+    """A straight tube of elliptic section (semi-axes 2.6 and 1.2 mm) through the image, whose axis radius falls
+    to 0.1 mm over its last 2 mm (as an axis continued to the border reads).  The plane goes one and a half
+    median radii inside the end, not one and a half end radii (at the border), and the cut reaches past the
+    section's long half-axis, not two inscribed radii (2.4 mm: the rim would be cut by the reach)."""
+    spacing = 0.4
+    k, j, i = np.meshgrid(*[np.arange(n) * spacing for n in (75, 30, 30)], indexing="ij")
+    phi = (np.sqrt(((i - 6.0) / 2.6) ** 2 + ((j - 6.0) / 1.2) ** 2) - 1.0) * 1.2
+    sdf = Volume(phi.astype(np.float32), (spacing, spacing, spacing))
+    z = np.linspace(0.0, 29.6, 149)
+    axis = np.stack([np.full_like(z, 6.0), np.full_like(z, 6.0), z], axis=1)
+    radii = np.minimum(1.2, 0.1 + 0.55 * (29.6 - z))
+    half = len(z) // 2
+    centerlines = Centerlines([Branch("CCA", axis[:half + 1], radii[:half + 1]), Branch("ICA", axis[half:], radii[half:])],
+                              axis[half])
+    surface, caps = clip_surface(extract_surface(sdf), centerlines, domain=sdf)
+    for cap in caps:
+        assert cap["planarity"] < 1e-6
+        assert cap["equivalent_radius"] == pytest.approx(np.sqrt(2.6 * 1.2), rel=0.05)
+    assert caps[1]["centre"][2] <= 29.6 - 1.5 * 1.2 + 1e-6
+    q = surface_quality(surface)
+    assert q["watertight"] and q["euler_characteristic"] == 2
+
+
 def test_remeshed_surface_quality_and_accuracy():
     ph = phantom(*ACCURACY_CASES[2])
     clipped, caps = clip_surface(extract_surface(ph.sdf), true_centerlines(ph), domain=ph.sdf)

@@ -18,11 +18,18 @@ from dataclasses import dataclass
 import numpy as np
 import pyvista as pv
 
+from carotid.centerline.features import end_skips
 from carotid.centerline.model import Centerlines
 from carotid.errors import CarotidError
 from carotid.io import Volume
 from carotid.surface.mesh import (WALL, boundary_loops, face_areas, face_normals, from_polydata,
                                   largest_component, to_polydata)
+
+
+RIM_TOLERANCE = 0.02
+"""Largest distance of a cut rim from its plane, in radii: the clip's edge interpolation leaves a few rim points
+a hundredth of a millimetre off it, which are moved onto it; a rim further off was cut by the reach, not the
+plane."""
 
 
 @dataclass(frozen=True)
@@ -86,8 +93,9 @@ def clip_planes(centerlines: Centerlines, inset_radii: float = 1.5, domain: Volu
     list of ClipPlane
     """
     planes = []
-    for label, (name, _, _, r_end) in enumerate(centerlines.ends(), start=2):  # loop over branches
+    for label, (name, _, _, _) in enumerate(centerlines.ends(), start=2):  # loop over branches
         pts, radii = _outward_axis(centerlines, name)
+        r_end = end_skips(radii)[1]
         s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
         from_end = s[-1] - s
         ok = False
@@ -109,13 +117,44 @@ def clip_planes(centerlines: Centerlines, inset_radii: float = 1.5, domain: Volu
     return planes
 
 
-def _cut_scalar(points: np.ndarray, planes: list[ClipPlane]) -> np.ndarray:
-    """Scalar (n,) that is positive where a point is cut away: beyond a plane and within 2 radii of its axis."""
+def section_reach(surface: pv.PolyData, plane: ClipPlane, margin: float = 1.25) -> float:
+    """How far from the axis the cut of an end reaches (mm): past the vessel's own section in the plane.
+
+    The inscribed radius is a section's smallest half-width; where a vessel leaves the image obliquely or its
+    section is elliptic, its rim reaches further.  The plane's intersection with the surface is split into
+    closed curves, the one nearest the axis point is the vessel's own, and the reach is ``margin`` times its
+    largest distance from the axis, at least two inscribed radii.
+
+    Parameters
+    ----------
+    surface : pyvista.PolyData
+        Closed lumen surface, mm.
+    plane : ClipPlane
+    margin : float
+
+    Returns
+    -------
+    float
+    """
+    section = surface.slice(normal=plane.normal, origin=plane.centre)
+    if section.n_points == 0:
+        return 2.0 * plane.radius
+    pieces = section.connectivity()
+    offset = pieces.points - plane.centre
+    radial = np.linalg.norm(offset - (offset @ plane.normal)[:, None] * plane.normal, axis=1)
+    region = np.asarray(pieces.point_data["RegionId"])
+    own = radial[region == region[np.argmin(radial)]]
+    return max(2.0 * plane.radius, margin * float(own.max()))
+
+
+def _cut_scalar(points: np.ndarray, planes: list[ClipPlane], reaches: list[float]) -> np.ndarray:
+    """Scalar (n,) that is positive where a point is cut away: beyond a plane and within its reach (mm) of
+    its axis."""
     f = np.full(len(points), -np.inf)
-    for p in planes:  # loop over ends
+    for p, reach in zip(planes, reaches):  # loop over ends
         d = (points - p.centre) @ p.normal
         radial = np.linalg.norm((points - p.centre) - d[:, None] * p.normal, axis=1)
-        f = np.maximum(f, np.minimum(d, 2.0 * p.radius - radial))
+        f = np.maximum(f, np.minimum(d, reach - radial))
     return f
 
 
@@ -224,7 +263,7 @@ def clip_surface(surface: pv.PolyData, centerlines: Centerlines, *, inset_radii:
     planes = clip_planes(centerlines, inset_radii, domain)
     points, faces, _ = from_polydata(surface)
     poly = to_polydata(points, faces)
-    poly.point_data["cut"] = _cut_scalar(points, planes)
+    poly.point_data["cut"] = _cut_scalar(points, planes, [section_reach(poly, p) for p in planes])
     kept = poly.clip_scalar(scalars="cut", invert=True, value=0.0).triangulate().clean(tolerance=1e-9,
                                                                                       absolute=True)
     points, faces, _ = from_polydata(pv.PolyData(kept.points, kept.faces))
@@ -237,10 +276,11 @@ def clip_surface(surface: pv.PolyData, centerlines: Centerlines, *, inset_radii:
     all_faces = [faces]
     for p in planes:  # loop over ends
         mine = [i for i, c in enumerate(centroids) if np.linalg.norm(c - p.centre) < 1.5 * p.radius]
-        if len(mine) != 1 or np.abs((points[loops[mine[0]]] - p.centre) @ p.normal).max() > 1e-3 * p.radius:
+        if len(mine) != 1 or np.abs((points[loops[mine[0]]] - p.centre) @ p.normal).max() > RIM_TOLERANCE * p.radius:
             raise CarotidError(f"the clipping plane of the {p.name} end does not cut the vessel in one closed rim "
                                "(is the branch too short or bent near its end?)")
         loop = loops[mine[0]]
+        points[loop] -= ((points[loop] - p.centre) @ p.normal)[:, None] * p.normal  # onto the plane exactly
         if flow_extension_radii > 0:
             points, ext, loop = extrude_rim(points, loop, p.normal, flow_extension_radii * p.radius)
             all_faces.append(ext)
