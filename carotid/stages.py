@@ -52,7 +52,8 @@ class SurfaceStageParameters:
     edge_min_mm, edge_max_mm : float
         Bounds of a radius-relative edge length, mm.
     inset_radii : float
-        Caps are cut this many end radii inside each open end.
+        Caps are cut this many end radii inside each open end (the branch's median radius where the end's
+        reads less).
     flow_extension_radii : float
         Length of the cylindrical flow extension at each cap, in radii (0: none).
     smoothing_iterations : int

@@ -95,8 +95,8 @@ def test_an_elliptic_end_whose_axis_radius_tapers_is_clipped_flat():
     axis = np.stack([np.full_like(z, 6.0), np.full_like(z, 6.0), z], axis=1)
     radii = np.minimum(1.2, 0.1 + 0.55 * (29.6 - z))
     half = len(z) // 2
-    centerlines = Centerlines([Branch("CCA", axis[:half + 1], radii[:half + 1]), Branch("ICA", axis[half:], radii[half:])],
-                              axis[half])
+    centerlines = Centerlines([Branch("CCA", axis[:half + 1], radii[:half + 1]),
+                               Branch("ICA", axis[half:], radii[half:])], axis[half])
     surface, caps = clip_surface(extract_surface(sdf), centerlines, domain=sdf)
     for cap in caps:
         assert cap["planarity"] < 1e-6

@@ -79,12 +79,16 @@ def _inside_image(domain: Volume, centre: np.ndarray, normal: np.ndarray, radius
 def clip_planes(centerlines: Centerlines, inset_radii: float = 1.5, domain: Volume | None = None) -> list[ClipPlane]:
     """One plane per open end, ``inset_radii`` end radii inside the end along the axis.
 
+    The end radius is at least the branch's median radius (``end_skips``): where the image border cuts a
+    vessel, the axis continued to it reads a radius near zero over its last millimetres, and a plane that
+    close to the border would cut the tapering marching-cubes closure, not the vessel.
+
     Parameters
     ----------
     centerlines : Centerlines
         The branch tree; ``ends()`` gives the order (inlet first).
     inset_radii : float
-        Distance of the plane from the end of the axis, in end radii.
+        Distance of the plane from the end of the axis, in end radii (at least the median radius).
     domain : Volume, optional
         The image grid: planes are moved further in until they are clear of its border.
 
