@@ -439,9 +439,9 @@ class _DeferredInterrupt:
 
 
 def _blow_up_hint(params: FlowParameters) -> str:
-    """What to try after a blow-up.  A prescribed split forces each outlet's share through the lumen whatever
-    the pressure it takes; behind a tight stenosis (90 % by area) that diverged before systole with any time
-    step or mesh tried, where the lumped outlets let the flow redistribute and run on."""
+    """What to try after a blow-up.  A prescribed split forces each outlet's share through the lumen at
+    whatever pressure it takes; behind a tight stenosis that can diverge with a smaller time step and a finer
+    mesh alike, while lumped outlets let the flow redistribute."""
     if params.outlets in ("murray", "split"):
         return ("a prescribed split forces each outlet's share through a tight stenosis: try lumped outlets, "
                 "--outlets rcr; else a smaller --dt or a finer mesh")
