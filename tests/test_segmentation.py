@@ -7,7 +7,7 @@ from scipy import ndimage
 from carotid.errors import CarotidError
 from carotid.phantom import LABELS, make_phantom, sample_family
 from carotid.segment import SegmentParameters, segment
-from carotid.segment.init import automatic_region, fork_score, fork_seeds, seed_levelset
+from carotid.segment.init import FORK_FIT, automatic_region, fork_score, fork_seeds, seed_levelset
 from carotid.segment.intensity import local_level, lumen_noise
 from carotid.segment.metrics import dice, surface_distances, topology
 from conftest import ACCURACY_CASES, phantom
@@ -235,6 +235,21 @@ def test_fork_seeds_lie_in_the_trunk_and_near_the_end_of_each_branch(flip):
     assert np.all(branches[:, 0] > 59.0 - 5.0)  # within 5 mm of the branches' ends
     assert np.allclose(branches[:, 2], [5.0 + 0.7, 20.0 - 0.5], atol=1.5)  # one on each branch's axis
     assert fork_seeds(straight, spacing) is None and fork_seeds(pair, spacing) is None
+
+
+def test_a_start_that_barely_forks_gets_no_branch_seeds():
+    """A tube that splits into two arms for 20 mm and joins again (one piece, then two, then one again for 19
+    mm) scores below ``FORK_FIT``: ``automatic_region`` would not take it as a fork, and ``fork_seeds`` places
+    no branch seeds in it (the arms are not branches: they end where they join)."""
+    spacing, shape = np.array([0.5, 0.5, 0.5]), (120, 50, 50)
+    region = _tube(shape, spacing, (0, 12.5, 12.5), (20, 12.5, 12.5), 3.0) | _tube(
+        shape, spacing, (40, 12.5, 12.5), (59, 12.5, 12.5), 3.0)
+    for side in (5.0, 20.0):
+        region |= _tube(shape, spacing, (20, 12.5, 12.5), (30, 12.5, side), 1.8) | _tube(
+            shape, spacing, (30, 12.5, side), (40, 12.5, 12.5), 1.8)
+    assert 0.0 < fork_score(region, spacing, 5.0) < FORK_FIT
+    assert fork_seeds(region, spacing) is None
+    assert fork_seeds(region, spacing, fork_fit=0.0) is not None  # the threshold, not the shape, refuses it
 
 
 def test_a_fork_whose_thin_branch_has_no_deep_core_is_still_found():

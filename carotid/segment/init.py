@@ -9,6 +9,10 @@ from carotid.errors import CarotidError
 from carotid.io import Volume
 from carotid.segment.intensity import MAD_TO_SD
 
+FORK_FIT = 0.75
+"""Smallest ``fork_score`` of a start that forks: a Y whose trunk and branches each hold one piece in at least
+three slices of four."""
+
 
 def grid_mm(shape) -> list[np.ndarray]:
     """Open grid of index coordinates (broadcastable (nk,1,1), (1,nj,1), (1,1,ni)), float32."""
@@ -111,7 +115,7 @@ def mask_levelset(mask: np.ndarray, spacing_kji) -> np.ndarray:
 
 def automatic_region(image01: np.ndarray, ghat: np.ndarray, spacing_kji, excluded: np.ndarray | None = None,
                      min_volume_mm3: float = 10.0, min_length_mm: float = 10.0, min_depth_mm: float = 1.0,
-                     min_core_mm: float = 1.5, core: float = -0.5, fork_fit: float = 0.75,
+                     min_core_mm: float = 1.5, core: float = -0.5, fork_fit: float = FORK_FIT,
                      fork_mm: float = 5.0) -> np.ndarray:
     """Find the arterial lumen's core without a seed.
 
@@ -296,7 +300,7 @@ def fork_score(region: np.ndarray, spacing_kji, min_mm: float, min_area_mm2: flo
 
 
 def fork_seeds(region: np.ndarray, spacing_kji, min_mm: float = 5.0, min_area_mm2: float = 2.0,
-               tip_mm: float = 5.0) -> np.ndarray | None:
+               tip_mm: float = 5.0, fork_fit: float = FORK_FIT) -> np.ndarray | None:
     """Seed points of a forking region: one in its trunk and one near the far end of each of its two branches.
 
     The region is split at its best fork step (``fork_step``).  The trunk's seed is its deepest voxel (the
@@ -314,17 +318,20 @@ def fork_seeds(region: np.ndarray, spacing_kji, min_mm: float = 5.0, min_area_mm
         As in ``fork_score``.
     tip_mm : float
         Length (mm) of a branch's end in which its seed is placed.
+    fork_fit : float
+        Smallest score of the fork step (``fork_step``): the one ``automatic_region`` asks of a forking start,
+        so that a start taken because nothing forked gets no branch seeds.
 
     Returns
     -------
     ndarray, shape (3, 3), float, or None
         Array indices (k, j, i) of the trunk's seed and the two branches', or None when the region does not
-        fork (no step, or fewer than two branches beyond it).
+        fork (a step scoring below ``fork_fit``, or fewer than two branches beyond it).
     """
     spacing = np.asarray(spacing_kji, float)
     axis, _, counts = slice_pieces(region, spacing, min_area_mm2)
     score, step, trunk_first = fork_step(counts, float(spacing[axis]), min_mm)
-    if score <= 0:
+    if score <= 0 or score < fork_fit:
         return None
     position = np.arange(region.shape[axis]).reshape([-1 if a == axis else 1 for a in range(3)])
     trunk_side = position < step if trunk_first else position >= step
