@@ -34,6 +34,8 @@ from carotid.flow.indices import HIGH_OSI, LOW_TAWSS_PA, area_fraction, node_are
 from carotid.flow.regions import INDEX_UNITS, REGION_INDICES, REGION_NAMES
 from carotid.io import atomic_path, read_json, write_json
 from carotid.pipeline import PROGRESS_SECONDS, STAGES, format_duration, read_case, run_stage
+from carotid.centerline.plaque import CALCIFIED_MM, calcified
+from carotid.report.checks import quality_checks, stenosis_category
 from carotid.segment.intensity import VALIDATED_CONTRAST_TO_NOISE
 
 BATCH_RANGES = {"workers": (1, 256), "retries": (0, 100)}  # LocalCluster processes; retries of a stage
@@ -137,7 +139,16 @@ COHORT_COLUMNS = {
                             "no carotid bifurcation was found"),
     "nascet": ("fraction", "NASCET stenosis degree of stenosis_branch, 1 - d_min / d_distal (diameters)"),
     "ecst": ("fraction", "ECST stenosis degree of stenosis_branch, 1 - d_min / d_local (diameters)"),
+    "stenosis_category": ("", "NASCET category of stenosis_branch's grade, as in the report (near occlusion "
+                              "overrides the percentage)"),
+    "stenosis_calcium_mm": ("mm", "distance from the lumen's wall around the throat to the nearest calcium the "
+                                  "segmentation took out; empty when none was found (which does not prove the "
+                                  "plaque soft)"),
+    "stenosis_calcified": ("", f"True when that calcium lies within {CALCIFIED_MM:g} mm of the lumen: the grade is "
+                               "less certain"),
     "mesh_tetrahedra": ("count", "tetrahedra of the volume mesh"),
+    "checks_failed": ("count", "quality checks of the stages run that failed (the report's checks)"),
+    "failed_checks": ("", "those checks, 'stage: quantity', separated by '; '"),
     "tawss_mean_pa": ("Pa", "time-averaged wall shear stress over the last cycle (or the part of it run: "
                             "indices_cycle_fraction), mean over the wall nodes"),
     "indices_cycle_fraction": ("fraction", "fraction of a cardiac cycle the wall indices average; under 1 the "
@@ -276,6 +287,8 @@ def case_summary(case: Case, case_dir: Path, outcome: dict) -> dict:
     osi, low_tawss = _wall_area_fractions(case_dir / "flow" / "indices.vtp")
     shape = geometry.get("bifurcation_geometry") or {}
     regions = flow.get("regions", {}).get("statistics", {})
+    failed = [f"{c.stage}: {c.quantity}" for c in quality_checks(
+        segmentation, read_json(case_dir / "surface_quality.json"), mesh, flow) if not c.passed]
     return {
         "case_id": case.case_id, "status": outcome["status"], "failed_stage": outcome.get("failed_stage", ""),
         "reason": outcome.get("reason", ""), "image": str(case.image),
@@ -283,7 +296,12 @@ def case_summary(case: Case, case_dir: Path, outcome: dict) -> dict:
         "lumen_contrast_to_noise": _cell_value(_lookup(segmentation, "intensity", "contrast_to_noise")),
         "stenosis_branch": stenosis.get("branch", ""), "nascet": stenosis.get("nascet", ""),
         "ecst": stenosis.get("ecst", ""),
+        "stenosis_category": stenosis_category(stenosis["nascet"], stenosis["min_diameter_mm"],
+                                               stenosis["distal_diameter_mm"]) if stenosis else "",
+        "stenosis_calcium_mm": _cell_value(stenosis.get("calcium_mm")),
+        "stenosis_calcified": calcified(stenosis) if stenosis else "",
         "mesh_tetrahedra": mesh.get("elements", {}).get("tetrahedra", ""),
+        "checks_failed": len(failed), "failed_checks": "; ".join(failed),
         "tawss_mean_pa": flow.get("indices", {}).get("TAWSS", {}).get("mean", ""),
         "indices_cycle_fraction": flow.get("indices_cycle_fraction", ""),
         "periodic_status": periodic.get("status", ""),

@@ -290,6 +290,45 @@ def test_cohort_columns_of_cycle_state_and_convergence_are_the_records(tmp_path)
         assert columns[name]["description"] == COHORT_COLUMNS[name][1]
 
 
+def test_cohort_columns_say_which_grades_and_results_to_doubt(tmp_path):
+    """stenosis_category is the report's (a near-occlusion whatever its percentage), stenosis_calcified says
+    whether calcium lies within CALCIFIED_MM of the throat's lumen, and checks_failed / failed_checks list the
+    report's failed quality checks; all empty or zero when the records are absent."""
+    from carotid.batch import Case, case_summary, write_cohort
+    from carotid.centerline.plaque import CALCIFIED_MM
+    from carotid.report.checks import MAX_DIHEDRAL_LAYER_DEG, MAX_SPLIT_ERROR
+
+    near, calcified, soft, empty = (tmp_path / name for name in ("near", "calcified", "soft", "empty"))
+    grades = {near: {"nascet": 0.45, "min_diameter_mm": 1.2, "distal_diameter_mm": 2.2, "calcium_mm": None},
+              calcified: {"nascet": 0.72, "min_diameter_mm": 1.5, "distal_diameter_mm": 5.4,
+                          "calcium_mm": 0.9 * CALCIFIED_MM},
+              soft: {"nascet": 0.55, "min_diameter_mm": 2.2, "distal_diameter_mm": 4.9, "calcium_mm": 1.1 * CALCIFIED_MM}}
+    for case, grade in grades.items():
+        case.mkdir()
+        (case / "geometry.json").write_text(json.dumps({"bifurcation_mm": [0.0, 0.0, 0.0],
+                                                        "stenosis": {"branch": "ICA", "ecst": 0.5, **grade}}))
+    (calcified / "mesh_quality.json").write_text(json.dumps({"layer": {"max_dihedral_deg": MAX_DIHEDRAL_LAYER_DEG + 1}}))
+    (calcified / "flow").mkdir()
+    (calcified / "flow" / "summary.json").write_text(json.dumps({"mass_balance": {"outlets": {
+        "3": {"error_max": 0.5 * MAX_SPLIT_ERROR}, "4": {"error_max": 2.0 * MAX_SPLIT_ERROR}}}}))
+    (soft / "mesh_quality.json").write_text(json.dumps({"layer": {"max_dihedral_deg": MAX_DIHEDRAL_LAYER_DEG - 1}}))
+    empty.mkdir()
+    rows = [case_summary(Case(path.name, tmp_path / "image.nii.gz", {}), path, {"status": "ok"})
+            for path in (near, calcified, soft, empty)]
+    write_cohort(rows, tmp_path / "cohort.csv")
+    with open(tmp_path / "cohort.csv", newline="") as handle:
+        near_row, calcified_row, soft_row, empty_row = csv.DictReader(handle)
+    assert near_row["stenosis_category"] == "near-occlusion" and near_row["stenosis_calcium_mm"] == ""
+    assert calcified_row["stenosis_category"] == ">=70 %" and soft_row["stenosis_category"] == "50-69 %"
+    assert [r["stenosis_calcified"] for r in (near_row, calcified_row, soft_row)] == ["False", "True", "False"]
+    assert calcified_row["checks_failed"] == "2"
+    assert calcified_row["failed_checks"] == ("mesh: largest dihedral angle, wall layers (deg); "
+                                              "flow: outlet 4: flow-split error, largest")
+    assert soft_row["checks_failed"] == "0" and soft_row["failed_checks"] == ""
+    assert empty_row["stenosis_category"] == empty_row["stenosis_calcified"] == empty_row["failed_checks"] == ""
+    assert empty_row["checks_failed"] == "0"
+
+
 def test_manifest_doppler_columns_and_cohort_duplex_columns(tmp_path):
     """doppler_cca_psv/edv of a manifest row reach that case's simulate section (bad values name the line); the
     duplex and calibration columns of cohort.csv are the values of flow/summary.json, empty when absent."""
