@@ -106,6 +106,26 @@ def test_an_elliptic_end_whose_axis_radius_tapers_is_clipped_flat():
     assert q["watertight"] and q["euler_characteristic"] == 2
 
 
+def test_a_coarse_global_edge_still_resolves_a_tight_throat():
+    """A 90 % (area) stenosis, 1.83 mm across, remeshed with 0.8 mm edges (the demo's): at the throat the edges
+    shrink to half its radius (about 12 around), and the two-layer wall of the demo's mesh builds on it.  With
+    the global edge everywhere the throat's section has about 7 edges around."""
+    from carotid.mesh import build_mesh
+    from carotid.surface.pipeline import RESOLVING_RATIO, build_surface
+
+    ph = phantom(0.9, 0.0, 0)
+    surface, _, _ = build_surface(ph.sdf, true_centerlines(ph), target_edge_mm=0.8)
+    throat, radius = np.asarray(ph.info["stenosis"]["location_mm"]), 0.5 * ph.info["stenosis"]["min_diameter_mm"]
+    edges = surface.extract_all_edges()
+    lines = edges.lines.reshape(-1, 3)[:, 1:]
+    middle = 0.5 * (edges.points[lines[:, 0]] + edges.points[lines[:, 1]])
+    length = np.linalg.norm(edges.points[lines[:, 0]] - edges.points[lines[:, 1]], axis=1)
+    near = np.linalg.norm(middle - throat, axis=1) <= 1.5 * radius
+    assert np.median(length[near]) <= 1.2 * RESOLVING_RATIO * radius
+    assert np.median(length[np.linalg.norm(middle - throat, axis=1) > 10.0]) > 0.7
+    build_mesh(surface, layers=2, thickness_ratio=0.15)
+
+
 def test_remeshed_surface_quality_and_accuracy():
     ph = phantom(*ACCURACY_CASES[2])
     clipped, caps = clip_surface(extract_surface(ph.sdf), true_centerlines(ph), domain=ph.sdf)

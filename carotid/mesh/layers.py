@@ -14,7 +14,11 @@ Construction
 * Inward directions: area-weighted vertex normals of the wall, smoothed by a
   few Laplacian iterations and kept within ``MAX_LEAN_DEG`` of the normal;
   at a cap rim they are projected onto the cap plane, so the layer
-  continues inside the cap and the cap stays planar.
+  continues inside the cap and the cap stays planar.  A direction must see
+  every incident face (else that face's first prism is inverted at any
+  thickness): it is pushed towards the faces it fails, and where that does
+  not converge (a crease) it becomes the direction that sees them best, the
+  axis of the smallest cone around their normals (``_most_visible``).
 * Thickness per wall vertex: absolute, or ``thickness_ratio`` times the
   local radius, the radius of the largest inscribed ball touching the
   vertex (shrinking-ball medial-axis estimate on the wall vertices, along
@@ -44,6 +48,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
+from itertools import combinations
 
 import numpy as np
 from scipy import sparse
@@ -266,12 +271,68 @@ def _directions(points, wall_tris, inward, local_wall, rim_cap_normal, adjacency
         dots = np.einsum("fki,fi->fk", directions[local_wall], unit_face)  # d . outward face normal
         bad = dots > -margin
         if not bad.any():
-            break
+            return directions
         face = np.broadcast_to(np.arange(len(wall_tris))[:, None], bad.shape)[bad]
         push = np.stack([np.bincount(local_wall[bad], weights=-unit_face[face, k], minlength=len(inward))
                          for k in range(3)], axis=1)
         directions = project(directions + 0.5 * push)
+    # Where the pushes did not converge, the direction that sees its incident faces best (at a crease, one
+    # that sees them all may exist only within a few degrees).
+    dots = np.einsum("fki,fi->fk", directions[local_wall], unit_face)
+    stuck = np.unique(local_wall[dots > -margin])
+    if stuck.size:
+        incident = _incident_faces(local_wall, len(inward), stuck)
+        best, seen = _most_visible(-unit_face[incident], rim_cap_normal[stuck])
+        now = np.einsum("vmi,vi->vm", -unit_face[incident], directions[stuck]).min(axis=1)
+        better = seen > now
+        directions[stuck[better]] = best[better]
     return directions
+
+
+def _incident_faces(triangles: np.ndarray, n: int, vertices: np.ndarray) -> np.ndarray:
+    """Faces around each of ``vertices`` (v, m): indices into ``triangles``, rows padded with their first face."""
+    incidence = sparse.csr_matrix((np.ones(triangles.size), (triangles.ravel(), np.repeat(np.arange(len(triangles)), 3))),
+                                  shape=(n, len(triangles)))
+    start, count = incidence.indptr[vertices], np.diff(incidence.indptr)[vertices]
+    slot = np.arange(count.max())[None]
+    return incidence.indices[np.where(slot < count[:, None], start[:, None] + slot, start[:, None])]
+
+
+def _most_visible(inward: np.ndarray, plane_normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The unit direction that maximises its smallest dot product with a few unit vectors, and that product.
+
+    On the sphere the maximin direction is the axis of the smallest cone around the vectors, fixed by one,
+    two or three of them: a vector, the bisector of two, or the direction equidistant from three (the normal
+    of the plane through their tips).  Every such candidate is scored and the best kept; exact, and
+    vectorised over the vertices (a vertex has some ten faces: a few hundred candidates).
+
+    Parameters
+    ----------
+    inward : ndarray, shape (v, m, 3)
+        Unit inward normals of the faces around each vertex.
+    plane_normal : ndarray, shape (v, 3)
+        Unit normal of the plane the direction must lie in (a cap's, at its rim), or zero.
+
+    Returns
+    -------
+    direction : ndarray, shape (v, 3)
+    visibility : ndarray, shape (v,)
+        Smallest dot product of the direction with the vectors (> 0: it sees every face).
+    """
+    p = inward - np.einsum("vmi,vi->vm", inward, plane_normal)[..., None] * plane_normal[:, None]
+    m = p.shape[1]
+    i, j = np.triu_indices(m, 1)
+    a, b, c = np.array([t for t in combinations(range(m), 3)] or [(0, 0, 0)]).T
+    across = np.cross(p[:, b] - p[:, a], p[:, c] - p[:, a])
+    across *= np.sign(np.einsum("vti,vti->vt", across, p[:, a]))[..., None]
+    candidates = np.concatenate([p, p[:, i] + p[:, j], across], axis=1)
+    candidates -= np.einsum("vci,vi->vc", candidates, plane_normal)[..., None] * plane_normal[:, None]
+    length = np.linalg.norm(candidates, axis=2)
+    candidates = candidates / np.maximum(length, 1e-300)[..., None]
+    seen = np.where(length > 1e-9, np.einsum("vci,vmi->vcm", candidates, p).min(axis=2), -np.inf)
+    best = np.argmax(seen, axis=1)
+    rows = np.arange(len(p))
+    return candidates[rows, best], seen[rows, best]
 
 
 def _within_cone(directions, axes, max_angle_deg):
