@@ -4,8 +4,9 @@ Every case of the second generator (``second_generator.py``, seeds given by ``--
 NIfTI image and listed in a manifest; one ``carotid batch`` run (two workers) takes the whole cohort from
 scan to report with the demo's coarse settings (``cli.DEMO_CONFIG``: 0.8 mm surface edges, two wall layers,
 one cardiac cycle), and no seed, stop point or parameter of its own.  Per case the script records whether
-it finished, the stage and reason where it failed, and the grade against the true lumen graded the same way
-(``bench_segmentation.grade`` on the generator's level set): NASCET error in points.
+it finished, the stage and reason where it failed, the grade against the true lumen graded the same way
+(``bench_segmentation.grade`` on the generator's level set: NASCET error in points), and what ``cohort.csv``
+tells a user to doubt: the stenosis called calcified, and the report's quality checks that failed.
 
 There is no peer: VMTK, SimVascular and 3D Slicer have no unattended scan-to-flow path to compare against.
 
@@ -90,9 +91,14 @@ def main() -> None:
                       "failed_stage": row["failed_stage"] or None, "reason": row["reason"] or None,
                       "nascet_graded": nascet, "stenosis_branch": row.get("stenosis_branch") or None,
                       "nascet_error_points": None if nascet is None or truth["nascet"] is None
-                      else 100.0 * (nascet - truth["nascet"])})
+                      else 100.0 * (nascet - truth["nascet"]),
+                      "stenosis_category": row.get("stenosis_category") or None,
+                      "stenosis_calcified": row.get("stenosis_calcified") == "True",
+                      "checks_failed": int(row["checks_failed"]) if row.get("checks_failed") else None,
+                      "failed_checks": row.get("failed_checks") or None})
     errors = np.array([abs(c["nascet_error_points"]) for c in cases if c["nascet_error_points"] is not None])
     failed = [c for c in cases if c["status"] != "ok"]
+    checks = [name for c in cases if c["failed_checks"] for name in c["failed_checks"].split("; ")]
     summary = {"cases": len(cases), "finished": len(cases) - len(failed),
                "failed": {c["case_id"]: f"{c['failed_stage']}: {c['reason']}" for c in failed},
                "failed_by_stage": {stage: sum(c["failed_stage"] == stage for c in failed)
@@ -101,6 +107,14 @@ def main() -> None:
                "nascet_within_5_points": int(np.sum(errors <= 5.0)),
                "nascet_abs_error_median_points": float(np.median(errors)) if len(errors) else None,
                "nascet_abs_error_worst_points": float(errors.max()) if len(errors) else None,
+               "nascet_within_5_points_by_calcified_flag": {
+                   flag: [sum(1 for c in cases if c["stenosis_calcified"] == value and c["nascet_error_points"]
+                              is not None and abs(c["nascet_error_points"]) <= 5.0),
+                          sum(1 for c in cases if c["stenosis_calcified"] == value and c["nascet_error_points"]
+                              is not None)]
+                   for flag, value in (("calcified", True), ("not_calcified", False))},
+               "cases_with_failed_checks": sum(1 for c in cases if c["checks_failed"]),
+               "failed_checks": {name: checks.count(name) for name in sorted(set(checks))},
                "batch_exit_status": batch.returncode, "batch_seconds": seconds}
     print(summary, flush=True)
     write_results("cohort", {"git": git, "config": DEMO_CONFIG, "workers": options.workers, "cases": cases,
