@@ -53,6 +53,14 @@ def test_config_defaults_overrides_and_toml_round_trip(tmp_path):
     ({"segment": {"max_iterations": 1.5}}, "expected int"),
     ({"segment": {"alpha": 1.5}}, "alpha must lie in"),
     ({"segment": {"seeds_mm": [[1.0, 2.0]]}}, "[x, y, z]"),
+    ({"segment": {"seeds_mm": [[float("nan"), 0.0, 10.0]]}}, "finite numbers"),
+    ({"segment": {"kernel_radius_mm": float("inf")}}, "kernel_radius_mm must be a finite number"),
+    ({"segment": {"kernel_radius_mm": 1e6}}, "kernel_radius_mm must lie in"),
+    ({"segment": {"window": [0.0, float("nan")]}}, "window must be a finite number"),
+    ({"segment": {"denoise_iterations": 100000000}}, "denoise_iterations must lie in"),
+    ({"segment": {"tolerance": 0.0}}, "tolerance must be positive"),
+    ({"segment": {"far_mm": 0.0}}, "far_mm must be positive"),
+    ({"segment": {"plateau": -1.0}}, "plateau must lie in"),
 ])
 def test_config_rejects_bad_values(overrides, message):
     with pytest.raises(CarotidError, match=message.replace("[", r"\[").replace("]", r"\]")):
