@@ -102,7 +102,12 @@ def read_centerlines(path: str | Path) -> Centerlines:
     info: dict = {}
     geometry = vtp.parent / JSON_NAME
     if geometry.exists():
-        info = json.loads(geometry.read_text())
+        try:
+            info = json.loads(geometry.read_text())
+        except (OSError, ValueError) as exc:
+            raise CarotidError(f"{geometry}: not valid JSON ({exc}); rerun carotid centerlines") from None
+        if not isinstance(info, dict):
+            raise CarotidError(f"{geometry}: not a JSON object; rerun carotid centerlines")
     bif = info.get("bifurcation_mm")
     if bif is None:
         bif = branches[names.index("CCA")].points[-1] if "CCA" in names and len(names) > 1 else np.full(3, np.nan)
