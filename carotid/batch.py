@@ -93,6 +93,8 @@ DUPLEX_KEYS = {
 DUPLEX_COLUMNS = {name: (unit, text) for name, (_, unit, text) in DUPLEX_KEYS.items()}
 DOPPLER_COLUMNS = ("doppler_cca_psv", "doppler_cca_edv")
 """Optional manifest columns: the measured CCA PSV and EDV of a case, cm/s (both or neither)."""
+MANIFEST_COLUMNS = ("case_id", "image", "config", *DOPPLER_COLUMNS)
+"""Every column a manifest may have; any other (a misspelt ``Config``) is an error, not ignored."""
 
 # The wall region columns (flow/summary.json regions.statistics, carotid.flow.regions), each "REGION_INDEX_STAT" with
 # a unit suffix, or "REGION_area_mm2" and "REGION_..._area_fraction".
@@ -195,10 +197,15 @@ def read_manifest(path: str | Path, default_config: str | Path | None = None) ->
     try:
         text = path.read_text()
     except OSError as exc:
-        raise CarotidError(f"{path}: cannot read the manifest ({exc.strerror})") from exc
+        raise CarotidError(f"{path}: cannot read the manifest ({exc.strerror})") from None
+    except UnicodeDecodeError:
+        raise CarotidError(f"{path}: not a text (CSV) manifest") from None
     header = next(csv.reader(io.StringIO(text)), [])
     if not {"case_id", "image"} <= set(header):
         raise CarotidError(f"{path}: a manifest needs a header with the columns case_id,image[,config] and rows")
+    unknown = [name for name in header if name not in MANIFEST_COLUMNS]
+    if unknown:
+        raise CarotidError(f"{path}: unknown column {', '.join(unknown)} (known: {', '.join(MANIFEST_COLUMNS)})")
     default = Config.from_toml(default_config).sections if default_config else {}
     cases, seen = [], set()
     reader = csv.DictReader(io.StringIO(text))

@@ -67,6 +67,16 @@ def test_config_rejects_bad_values(overrides, message):
         Config(overrides)
 
 
+def test_a_config_folder_and_a_case_record_that_is_not_one_are_clear_errors(tmp_path):
+    from carotid.pipeline import read_case
+
+    with pytest.raises(CarotidError, match="cannot read the config file"):
+        Config.from_toml(tmp_path)
+    (tmp_path / "case.json").write_text("[1, 2]")
+    with pytest.raises(CarotidError, match="not a record of stages"):
+        read_case(tmp_path)
+
+
 def test_bad_toml_is_one_clear_error(tmp_path, capsys):
     path = tmp_path / "bad.toml"
     path.write_text("[segment\nalpha = ")

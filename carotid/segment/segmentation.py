@@ -748,6 +748,11 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
     if stops_xyz is not None and len(stops_xyz):
         stops_xyz = np.atleast_2d(np.asarray(stops_xyz, float))
         check_points(volume, stops_xyz, "stop point")
+        if seeds_xyz is not None and len(seeds_xyz):
+            gap = np.linalg.norm(stops_xyz[:, None] - np.atleast_2d(seeds_xyz)[None], axis=2)
+            if np.any(gap <= params.seed_radius_mm):
+                raise CarotidError(f"a stop point lies within {params.seed_radius_mm:g} mm of a seed (the seed's "
+                                   "sphere): a stop point marks a structure to keep out, away from the seeds")
         stops = point_mask(volume.world_to_index(stops_xyz), image.shape)
     if seeds_kji is not None:
         # Each seed sphere grows to half the lumen's radius measured there, so that in a wide vessel (an aorta)
