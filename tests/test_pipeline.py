@@ -3,6 +3,7 @@
 import csv
 import json
 import os
+import pickle
 import re
 import shutil
 import signal
@@ -185,6 +186,30 @@ def test_killed_run_resumes_to_the_same_result(small_image, tmp_path):
         scale = max(np.abs(uninterrupted[field]).max(), 1e-30)
         assert np.abs(resumed[field] - uninterrupted[field]).max() <= 1e-10 * scale, field
     assert [p.name for p in case.iterdir() if p.name.startswith(".")] == []
+
+
+def test_an_unexpected_stage_error_names_its_stage(tmp_path, monkeypatch):
+    """A stage that raises something other than CarotidError is retried by Dask (``StageFailure``) and, if it
+    persists, fails its case at that stage (before, ``failed_stage`` was empty)."""
+    import carotid.batch as batch
+    from carotid.batch import Case, StageFailure, _outcome, _stage_task
+
+    def broken(stage, *args):
+        raise ZeroDivisionError("float division by zero")
+
+    monkeypatch.setattr(batch, "run_stage", broken)
+    case = Case("a", tmp_path / "a.nii.gz", {})
+    (tmp_path / "a.nii.gz").write_bytes(b"")
+    with pytest.raises(StageFailure) as caught:
+        _stage_task(case, str(tmp_path / "a"), "mesh", {"status": "ok", "log": []})
+    restored = pickle.loads(pickle.dumps(caught.value))  # it crosses process boundaries
+
+    class Erred:
+        def result(self):
+            raise restored
+
+    assert _outcome(Erred()) == {"status": "failed", "failed_stage": "mesh",
+                                 "reason": "ZeroDivisionError: float division by zero"}
 
 
 def test_batch_isolates_a_corrupt_case(small_image, tmp_path, capsys):
