@@ -97,7 +97,7 @@ def read_record(path, remedy: str) -> dict | None:
     except (OSError, UnicodeDecodeError, ValueError) as exc:
         raise CarotidError(f"{path}: not valid JSON ({exc}); {remedy}") from None
     if not isinstance(data, dict):
-        raise CarotidError(f"{path}: not a JSON object (it holds {type(data).__name__} {str(data)[:40]}); {remedy}")
+        raise CarotidError(f"{path}: not a JSON object (it holds {json.dumps(data)[:40]}); {remedy}")
     return data
 
 
