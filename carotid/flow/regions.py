@@ -192,12 +192,13 @@ def case_regions(case_dir, points: np.ndarray, triangles: np.ndarray, indices: d
         ``statistics``: :func:`region_statistics` over the nodes) and ``bifurcation_geometry``
         (:func:`carotid.centerline.features.bifurcation_geometry`); empty without centerlines.
     """
-    from carotid.centerline import geometry_features, read_centerlines
+    from carotid.centerline import geometry_features
+    from carotid.flow.inputs import read_case_centerlines
 
     path = Path(case_dir) / "centerlines.vtp"
     if not path.exists():
         return None, {}
-    cl = read_centerlines(path)
+    cl = read_case_centerlines(path)
     geometry = geometry_features(cl)
     nodes = wall_regions(points, cl, geometry)
     cells = wall_regions(points[triangles].mean(axis=1), cl, geometry)
