@@ -277,14 +277,14 @@ def case_probes(case_dir, mesh, user=()) -> tuple[ProbeSet, dict]:
         When the case has centerlines but gets no gates, a CarotidWarning gives the reason.
     """
     from carotid.centerline import geometry_features
-    from carotid.flow.inputs import read_case_centerlines
+    from carotid.centerline import read_centerlines
 
     locator = PointLocator(mesh.points, mesh.tets)
     specs = [ProbeSpec(str(name), np.asarray(xyz, dtype=float), 0.0, "user") for name, xyz in user]
     meta = {"reason": "no centerlines.vtp in the case folder"}
     path = Path(case_dir) / "centerlines.vtp"
     if path.exists():
-        cl = read_case_centerlines(path)
+        cl = read_centerlines(path)
         inside = np.mean(locator.locate(np.concatenate([b.points for b in cl.branches]) * MM)[0] >= 0)
         if inside < MATCHING_FRACTION:
             meta = {"reason": f"the centerlines do not match the mesh: {100 * inside:.0f} % of their points lie "

@@ -135,12 +135,12 @@ class FlowMesh:
     def from_vtu(cls, path) -> FlowMesh:
         """Read ``mesh.vtu`` written by the mesh stage; CarotidError naming the file when it cannot be read or is
         not a usable flow mesh."""
-        from carotid.flow.inputs import read_vtk
+        from carotid.io.vtkfile import read_vtk
 
         path = Path(path)
         if not path.is_file():
             raise CarotidError(f"{path} not found: run `carotid mesh` first")
-        grid = read_vtk(path, "mesh file", "rerun `carotid mesh`")
+        grid = read_vtk(path, "mesh", remedy="rerun `carotid mesh`")
         try:
             return cls.from_pyvista(grid)
         except CarotidError as exc:

@@ -193,12 +193,12 @@ def case_regions(case_dir, points: np.ndarray, triangles: np.ndarray, indices: d
         (:func:`carotid.centerline.features.bifurcation_geometry`); empty without centerlines.
     """
     from carotid.centerline import geometry_features
-    from carotid.flow.inputs import read_case_centerlines
+    from carotid.centerline import read_centerlines
 
     path = Path(case_dir) / "centerlines.vtp"
     if not path.exists():
         return None, {}
-    cl = read_case_centerlines(path)
+    cl = read_centerlines(path)
     geometry = geometry_features(cl)
     nodes = wall_regions(points, cl, geometry)
     cells = wall_regions(points[triangles].mean(axis=1), cl, geometry)

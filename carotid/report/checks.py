@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from carotid.errors import CarotidError
-from carotid.flow.inputs import read_vtk
+from carotid.io.vtkfile import read_vtk
 from carotid.mesh.mesher import CORE_MIN_DIHEDRAL
 
 # Near-occlusion on CTA (Bartlett et al., AJNR 2006;27:632-637): a residual lumen of at most 1.3 mm with a
@@ -152,7 +152,7 @@ def stale_warnings(case_dir: Path, record: dict, geometry: dict, segmentation: d
 
     def dataset(path: Path):
         try:
-            return read_vtk(path, "VTK file", "") if path.exists() else None
+            return read_vtk(path, "VTK") if path.exists() else None
         except CarotidError:
             return None
 

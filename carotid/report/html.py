@@ -29,7 +29,8 @@ from carotid.centerline.features import (BULB_EXCESS, BULB_WINDOW, CCA_WINDOW, D
 from carotid.centerline.plaque import calcified
 from carotid.flow.convergence import STATUS
 from carotid.flow.indices import HIGH_OSI, LOW_TAWSS_PA, node_areas
-from carotid.flow.inputs import read_case_centerlines, read_record, read_vtk
+from carotid.centerline import read_centerlines
+from carotid.io.vtkfile import read_record, read_vtk
 from carotid.flow.regions import INDEX_UNITS, REGION_INDICES, REGION_NAMES, region_statistics, wall_regions
 from carotid.errors import CarotidError, CarotidWarning
 from carotid.io import atomic_path, read_image
@@ -139,8 +140,8 @@ class Case:
                    for key, name, stage in RECORDS}
         # centerlines.vtp is read with geometry.json: an unreadable geometry.json is entered once, as itself
         centerlines = None if "geometry.json" in unreadable else \
-            attempt("centerlines.vtp", read_case_centerlines, case_dir / "centerlines.vtp")
-        wall = attempt("flow/indices.vtp", read_vtk, case_dir / "flow" / "indices.vtp", "wall indices file",
+            attempt("centerlines.vtp", read_centerlines, case_dir / "centerlines.vtp")
+        wall = attempt("flow/indices.vtp", read_vtk, case_dir / "flow" / "indices.vtp", "wall indices", None,
                        "rerun the simulate stage")
         return cls(case_dir, **records, centerlines=centerlines, wall=wall, unreadable=unreadable)
 
@@ -521,7 +522,7 @@ def summary_html(case: Case) -> str:
     geometry = geometry_features(cl) if cl is not None else {}
     surface_path = case.dir / "surface.vtp"
     if surface_path.exists() and cl is not None:
-        surface = read_vtk(surface_path, "surface file", "rerun the surface stage")
+        surface = read_vtk(surface_path, "surface", remedy="rerun the surface stage")
         ids = np.asarray(surface["CellEntityIds"])
         caps = case.cap_names()
         cap_ids = sorted(set(np.unique(ids).tolist()) - {1})
@@ -680,7 +681,7 @@ def convergence_html(case: Case) -> str:
                 "discretisation error of the wall indices is not estimated.</p>")
     parts = [_table_html(convergence_table(case.convergence, "TAWSS", "Pa"))]
     path = case.dir / "flow" / "convergence.vtp"
-    wall = read_vtk(path, "convergence map", "rerun carotid simulate --convergence") if path.exists() else None
+    wall = read_vtk(path, "convergence map", remedy="rerun carotid simulate --convergence") if path.exists() else None
     gci = 100.0 * np.asarray(wall["TAWSS_GCI"], dtype=float) if wall is not None else np.array([np.nan])
     if np.isfinite(gci).any():
         wall.point_data["TAWSS_GCI_percent"] = gci
@@ -779,7 +780,7 @@ def geometry_section(case: Case) -> Section:
     if (case.dir / "surface.vtp").exists():
         section.figures.append(("Smallest angle of each surface triangle",
                                 figures.histogram({"surface": _triangle_min_angles(
-                                    read_vtk(case.dir / "surface.vtp", "surface file", "rerun the surface stage"))},
+                                    read_vtk(case.dir / "surface.vtp", "surface", remedy="rerun the surface stage"))},
                                     "degrees")))
     section.tables.append(checks_table(quality_checks({}, case.surface_quality, {}, {})))
     section.tables.append(Table("Surface record", flatten({k: v for k, v in case.surface_quality.items()
@@ -794,7 +795,7 @@ def mesh_section(case: Case) -> Section:
     if not path.exists():
         section.note = "The mesh stage has not run."
         return section
-    mesh = read_vtk(path, "mesh file", "rerun the mesh stage")
+    mesh = read_vtk(path, "mesh", remedy="rerun the mesh stage")
     section.figures.append(("Tetrahedra behind a plane through the mesh centre (layer and core regions)",
                             figures.mesh_cut_view(mesh)))
     section.figures.append(("Close-up of the wall layers", figures.mesh_cut_view(mesh, zoom=4.0)))

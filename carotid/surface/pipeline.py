@@ -14,7 +14,6 @@ from scipy import ndimage
 from carotid.centerline.model import Centerlines
 from carotid.errors import CarotidError
 from carotid.io import Volume, atomic_path, write_json
-from carotid.io.vtkfile import read_vtk
 from carotid.surface.clip import cap_info, clip_surface, extrude_rim, planar_cap
 from carotid.surface.external import label_caps
 from carotid.surface.extract import extract_surface
@@ -296,6 +295,5 @@ def read_levelset_and_centerlines(case_dir: str | Path) -> tuple[Volume, Centerl
         raise CarotidError(f"{cl_path} not found: run `carotid centerlines {case_dir}` first")
     from carotid.centerline import read_centerlines
 
-    read_vtk(cl_path, "centerline")  # a junk file is refused here without VTK's console dump
     return read_image(ls_path), read_centerlines(cl_path)
 
