@@ -253,7 +253,8 @@ class FlowStageParameters:
         return FlowParameters(**fields).validate()
 
     def validate(self) -> "FlowStageParameters":
-        """Raise CarotidError for values outside their range (the solver checks the rest)."""
+        """Raise CarotidError for values outside their range, and for what the solver's parameters refuse, so that
+        ``carotid run`` stops before its first stage, not at the flow's."""
         from carotid.flow.waveform import MIN_MEAN_FLOW_ML
 
         check_ranges("simulate", self, self.RANGES)
@@ -282,6 +283,7 @@ class FlowStageParameters:
                 check_doppler(self.doppler_cca_psv, self.doppler_cca_edv)
             except CarotidError as exc:
                 raise CarotidError(f"bad simulate parameter: doppler_cca_psv, doppler_cca_edv: {exc}") from None
+        self.flow_parameters()  # the solver's own checks (model names, outlet values, the waveform and probe files)
         return self
 
 

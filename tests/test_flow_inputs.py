@@ -36,7 +36,7 @@ def test_a_mesh_node_with_non_finite_coordinates_is_refused_when_read(tube_case,
     grid.points[5] = np.nan
     grid.save(tube_case / "mesh.vtu")
     err = _one_error(capfd, ["simulate", tube_case, "--cycles", "0.01"])
-    assert "mesh.vtu: 1 nodes have non-finite coordinates" in err
+    assert "mesh.vtu: non-finite coordinates" in err
 
 
 @pytest.mark.parametrize("name, what", [("mesh.vtu", "mesh file"), ("centerlines.vtp", "centerline file")])

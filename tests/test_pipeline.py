@@ -62,6 +62,11 @@ def test_config_defaults_overrides_and_toml_round_trip(tmp_path):
     ({"segment": {"tolerance": 0.0}}, "tolerance must be positive"),
     ({"segment": {"far_mm": 0.0}}, "far_mm must be positive"),
     ({"segment": {"plateau": -1.0}}, "plateau must lie in"),
+    ({"simulate": {"outlets": "windkessel"}}, "--outlets must be one of"),
+    ({"simulate": {"turbulence": "kepsilon"}}, "--turbulence must be"),
+    ({"simulate": {"outlets": "resistance", "resistance": [-1e9, 1e9]}}, "resistances must be positive"),
+    ({"simulate": {"outlets": "rcr", "rcr": [[1.0, 2.0]]}}, "three positive values"),
+    ({"simulate": {"waveform": "no-such-waveform.csv"}}, "cannot read waveform file"),
 ])
 def test_config_rejects_bad_values(overrides, message):
     with pytest.raises(CarotidError, match=message.replace("[", r"\[").replace("]", r"\]")):

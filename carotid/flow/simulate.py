@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import signal
 import threading
 import time as _time
@@ -143,6 +144,12 @@ class FlowParameters:
             raise CarotidError(f"--outlets must be one of {', '.join(OUTLET_MODELS)} (got {self.outlets!r})")
         if self.outlets == "split" and self.split is None:
             raise CarotidError("--outlets split needs the fractions: --split 0.65:0.35")
+        if self.resistance is not None and not all(math.isfinite(r) and r > 0 for r in self.resistance):
+            raise CarotidError(f"outlet resistances must be positive numbers, Pa s/m^3 (got {list(self.resistance)})")
+        if self.rcr is not None and not all(len(row) == 3 and all(math.isfinite(v) and v > 0 for v in row)
+                                            for row in self.rcr):
+            raise CarotidError("each RCR outlet needs three positive values: R_p (Pa s/m^3), C (m^3/Pa), R_d "
+                               f"(Pa s/m^3) (got {[list(row) for row in self.rcr]})")
         if not self.backflow >= 0:
             raise CarotidError(f"the backflow stabilisation coefficient must be >= 0 (got {self.backflow})")
         if self.rheology not in ("newtonian", "carreau", "casson"):

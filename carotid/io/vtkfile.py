@@ -80,14 +80,14 @@ def read_vtk(path: str | Path, kind: str, suffixes: tuple[str, ...] | None = Non
         except ValueError:
             raise CarotidError(f"{path}: not a readable {kind} file (no VTK reader for '{suffix}')") from None
         try:
-            data = reader.read()
+            data, failure = reader.read(), ""
         except Exception as exc:  # noqa: BLE001 - VTK and meshio raise assorted types on corrupt files
-            raise CarotidError(f"{path}: not a readable {kind} file ({exc}){tail}") from None
-    if catcher.error_events or not data.n_points:
-        alerts = " ".join(e.alert.split("\n")[0] for e in catcher.error_events)
-        if "non-finite" in alerts:
+            data, failure = None, str(exc)
+    if data is None or catcher.error_events or not data.n_points:
+        alerts = [e.alert.strip() for e in catcher.error_events]  # VTK's message without its file and line
+        if any("non-finite" in alert for alert in alerts):
             raise CarotidError(f"{path}: non-finite coordinates (NaN or infinity) in the {kind} file{tail}")
-        reason = catcher.error_events[0].alert.splitlines()[0] if catcher.error_events else "no points"
+        reason = (alerts[0] if alerts else failure or "no points").splitlines()[-1].strip()
         raise CarotidError(f"{path}: not a readable {kind} file ({reason}){tail}")
     if not np.isfinite(np.asarray(data.points, float)).all():
         raise CarotidError(f"{path}: non-finite coordinates (NaN or infinity) in the {kind} file{tail}")

@@ -295,5 +295,6 @@ def read_levelset_and_centerlines(case_dir: str | Path) -> tuple[Volume, Centerl
         raise CarotidError(f"{cl_path} not found: run `carotid centerlines {case_dir}` first")
     from carotid.centerline import read_centerlines
 
-    return read_image(ls_path), read_centerlines(cl_path)
+    centerlines = read_centerlines(cl_path)  # the small file first: a junk one is refused before the image is read
+    return read_image(ls_path), centerlines
 
