@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import csv
 import io
+import logging
 import sys
 import time
 from dataclasses import dataclass
@@ -93,6 +94,8 @@ DUPLEX_KEYS = {
 DUPLEX_COLUMNS = {name: (unit, text) for name, (_, unit, text) in DUPLEX_KEYS.items()}
 DOPPLER_COLUMNS = ("doppler_cca_psv", "doppler_cca_edv")
 """Optional manifest columns: the measured CCA PSV and EDV of a case, cm/s (both or neither)."""
+MANIFEST_COLUMNS = ("case_id", "image", "config", *DOPPLER_COLUMNS)
+"""Every column a manifest may have; any other (a misspelt ``Config``) is an error, not ignored."""
 
 # The wall region columns (flow/summary.json regions.statistics, carotid.flow.regions), each "REGION_INDEX_STAT" with
 # a unit suffix, or "REGION_area_mm2" and "REGION_..._area_fraction".
@@ -195,10 +198,15 @@ def read_manifest(path: str | Path, default_config: str | Path | None = None) ->
     try:
         text = path.read_text()
     except OSError as exc:
-        raise CarotidError(f"{path}: cannot read the manifest ({exc.strerror})") from exc
+        raise CarotidError(f"{path}: cannot read the manifest ({exc.strerror})") from None
+    except UnicodeDecodeError:
+        raise CarotidError(f"{path}: not a text (CSV) manifest") from None
     header = next(csv.reader(io.StringIO(text)), [])
     if not {"case_id", "image"} <= set(header):
         raise CarotidError(f"{path}: a manifest needs a header with the columns case_id,image[,config] and rows")
+    unknown = [name for name in header if name not in MANIFEST_COLUMNS]
+    if unknown:
+        raise CarotidError(f"{path}: unknown column {', '.join(unknown)} (known: {', '.join(MANIFEST_COLUMNS)})")
     default = Config.from_toml(default_config).sections if default_config else {}
     cases, seen = [], set()
     reader = csv.DictReader(io.StringIO(text))
@@ -234,8 +242,17 @@ def read_manifest(path: str | Path, default_config: str | Path | None = None) ->
     return cases
 
 
+class StageFailure(RuntimeError):
+    """An unexpected error of one stage of one case: Dask retries it, and if it persists the case fails there."""
+
+    def __init__(self, stage: str, reason: str):
+        super().__init__(stage, reason)
+        self.stage, self.reason = stage, reason
+
+
 def _stage_task(case: Case, case_dir: str, stage_name: str, previous: dict | None) -> dict:
-    """Run one stage of one case (a Dask task): ``{"status": "ok"|"failed", ...}``."""
+    """Run one stage of one case (a Dask task): ``{"status": "ok"|"failed", ...}``; ``StageFailure`` on an
+    unexpected error."""
     if previous is not None and previous["status"] != "ok":
         return previous
     stage = next(s for s in STAGES if s.name == stage_name)
@@ -245,6 +262,8 @@ def _stage_task(case: Case, case_dir: str, stage_name: str, previous: dict | Non
         line = run_stage(stage, case.image, Path(case_dir), Config(case.overrides))
     except CarotidError as exc:
         return {"status": "failed", "failed_stage": stage_name, "reason": str(exc)}
+    except Exception as exc:  # noqa: BLE001 - anything else may be transient: retried, then the case's failure
+        raise StageFailure(stage_name, f"{type(exc).__name__}: {exc}") from None
     log = (previous or {}).get("log", []) + [line]
     return {"status": "ok", "log": log}
 
@@ -352,7 +371,9 @@ def _outcome(final) -> dict:
     """The outcome of a case from the future of its last stage."""
     try:
         return final.result()
-    except Exception as exc:  # an unexpected error that persisted through the retries
+    except StageFailure as exc:  # an unexpected error of a stage that persisted through the retries
+        return {"status": "failed", "failed_stage": exc.stage, "reason": exc.reason}
+    except Exception as exc:  # outside the stages (a worker that died)
         return {"status": "failed", "failed_stage": "", "reason": f"{type(exc).__name__}: {exc}"}
 
 
@@ -429,8 +450,11 @@ def run_batch(manifest: str | Path, out_dir: str | Path, *, scheduler: str | Non
     cases = read_manifest(manifest, config)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    # Dask's own logs (a retried task's traceback, a closed stream at shutdown) would bury the progress lines:
+    # every failure is in the case's line and in cohort.csv.
+    logging.getLogger("distributed").setLevel(logging.CRITICAL)
     cluster = None if scheduler else LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                                  dashboard_address=None)
+                                                  dashboard_address=None, silence_logs=logging.CRITICAL)
     with Client(scheduler or cluster) as client:
         finals, tasks = {}, []
         for case in cases:

@@ -288,9 +288,16 @@ def _add_segment_options(p: argparse.ArgumentParser) -> None:
                         "balls along its main axis (default 0: off; implies --wall)")
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are one line (and exit status 2), not the usage block first."""
+
+    def error(self, message: str):
+        self.exit(2, f"carotid: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    """The argument parser of the ``carotid`` command."""
-    parser = argparse.ArgumentParser(prog="carotid", description="CT angiogram of the neck -> carotid blood flow.")
+    """The argument parser of the ``carotid`` command (its subcommands' parsers are of the same class)."""
+    parser = OneLineParser(prog="carotid", description="CT angiogram of the neck -> carotid blood flow.")
     parser.add_argument("--version", action="version", version=f"carotid {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -392,7 +399,10 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
 
 def main(argv=None) -> int:
     """Entry point of the ``carotid`` console script."""
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as exc:  # a usage error (one line, status 2), --help or --version
+        return exc.code
     try:
         with warnings.catch_warnings():
             warnings.showwarning = _show_warning

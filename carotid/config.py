@@ -107,10 +107,12 @@ class Config:
         path = Path(path)
         try:
             data = tomllib.loads(path.read_text())
-        except FileNotFoundError as exc:
-            raise CarotidError(f"{path}: no such config file") from exc
+        except FileNotFoundError:
+            raise CarotidError(f"{path}: no such config file") from None
+        except OSError as exc:
+            raise CarotidError(f"{path}: cannot read the config file ({exc.strerror})") from None
         except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-            raise CarotidError(f"{path}: not valid TOML ({exc})") from exc
+            raise CarotidError(f"{path}: not valid TOML ({exc})") from None
         return cls(data)
 
     def section(self, name: str) -> dict:

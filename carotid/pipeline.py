@@ -115,9 +115,12 @@ def read_case(case_dir: Path) -> dict:
     if not path.exists():
         return {"stages": {}}
     try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise CarotidError(f"{path} is corrupt ({exc}); delete it to start the case afresh") from exc
+        record = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise CarotidError(f"{path} is corrupt ({exc}); delete it to start the case afresh") from None
+    if not isinstance(record, dict) or not isinstance(record.get("stages"), dict):
+        raise CarotidError(f"{path} is corrupt (not a record of stages); delete it to start the case afresh")
+    return record
 
 
 def versions() -> dict:

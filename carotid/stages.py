@@ -253,8 +253,23 @@ class FlowStageParameters:
         return FlowParameters(**fields).validate()
 
     def validate(self) -> "FlowStageParameters":
-        """Raise CarotidError for values outside their range (the solver checks the rest)."""
+        """Raise CarotidError for values outside their range, and for what the solver's parameters refuse, so that
+        ``carotid run`` stops before its first stage, not at the flow's."""
+        from carotid.flow.waveform import MIN_MEAN_FLOW_ML
+
         check_ranges("simulate", self, self.RANGES)
+        if 0 < self.flow_ml_s < MIN_MEAN_FLOW_ML:
+            raise CarotidError(f"bad simulate parameter: flow_ml_s = {self.flow_ml_s:g} is below "
+                               f"{MIN_MEAN_FLOW_ML:g} mL/s (a carotid carries 2-20 mL/s; the adaptive time step "
+                               "would span the whole cycle)")
+        if self.split and self.outlets == "murray":
+            raise CarotidError("bad simulate parameter: split (--split) needs outlets (--outlets) split, resistance "
+                               "or rcr; murray shares the flow by Murray's law instead")
+        if bool(self.doppler_cca_psv) != bool(self.doppler_cca_edv):
+            given, missing = (("doppler_cca_psv", "doppler_cca_edv") if self.doppler_cca_psv else
+                              ("doppler_cca_edv", "doppler_cca_psv"))
+            raise CarotidError(f"bad simulate parameter: {given} without {missing}: give both measured CCA "
+                               "velocities (cm/s) or neither (0 means not measured)")
         if self.split and (any(s <= 0 for s in self.split) or abs(sum(self.split) - 1) > 1e-6):
             raise CarotidError(f"bad simulate parameter: split ratios {self.split} must be positive and sum to 1")
         for xyz in self.probes:
@@ -268,6 +283,7 @@ class FlowStageParameters:
                 check_doppler(self.doppler_cca_psv, self.doppler_cca_edv)
             except CarotidError as exc:
                 raise CarotidError(f"bad simulate parameter: doppler_cca_psv, doppler_cca_edv: {exc}") from None
+        self.flow_parameters()  # the solver's own checks (model names, outlet values, the waveform and probe files)
         return self
 
 

@@ -534,6 +534,27 @@ def test_blob_without_axis_is_refused():
         compute_centerlines(vol.with_array(sdf.reshape(30, 30, 30).astype(np.float32)))
 
 
+def test_a_one_voxel_lumen_and_a_flipped_level_set_are_refused():
+    """One voxel holds no axis; a level set positive inside its mask is not a signed distance, negative
+    inside (both were internal errors)."""
+    sdf, _, _, _ = y_shape()
+    speck = np.full(sdf.array.shape, 5.0, np.float32)
+    speck[10, 10, 10] = -0.2
+    with pytest.raises(CarotidError, match="too small to hold a vessel axis"):
+        compute_centerlines(sdf.with_array(speck))
+    with pytest.raises(CarotidError, match="sign flipped"):
+        compute_centerlines(sdf.with_array(-sdf.array), sdf.with_array((sdf.array < 0).astype(np.uint8)))
+
+
+def test_unreadable_geometry_beside_centerlines_is_one_clear_error(tmp_path):
+    cl = phantom_centerlines(ACCURACY_CASES[0])
+    _, geometry = write_centerlines(cl, tmp_path)
+    for text, message in (("{x", "not valid JSON"), ("[1, 2, 3]", "not a JSON object")):
+        geometry.write_text(text)
+        with pytest.raises(CarotidError, match=message):
+            read_centerlines(tmp_path)
+
+
 def test_small_debris_is_ignored():
     sdf, bif, _, _ = y_shape()
     phi = sdf.array.copy()
@@ -554,6 +575,16 @@ def test_cli_needs_a_segmentation(tmp_path):
     with pytest.raises(CarotidError, match="carotid segment"):
         args.func(args)
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("option, value", [("--smoothing", "nan"), ("--smoothing", "1e6"), ("--prune", "nan"),
+                                           ("--prune", "1e9"), ("--prune", "0")])
+def test_cli_refuses_options_outside_their_range(tmp_path, option, value):
+    """A pruning of 1e9 radii removed every branch and a smoothing of 1e6 mm moved NASCET from 36 to 92 %,
+    with exit 0; NaN passed or crashed."""
+    args = _parse(["centerlines", str(tmp_path), option, value])
+    with pytest.raises(CarotidError, match="prune|smoothing"):
+        args.func(args)
 
 
 def test_cli_writes_outputs_and_summary(tmp_path, capsys):

@@ -147,6 +147,11 @@ def bad_inputs(tmp_path, phantom_dir):
         ("constant image", ["segment", constant]),
         ("NaN voxels", ["segment", with_nan]),
         ("seed outside", ["segment", image, "--seed", "0", "0", "900"]),
+        ("seed not finite", ["segment", image, "--seed", "inf", "0", "10"]),
+        ("stop point on the seed", ["segment", image, "--seed", "0", "0", "10", "--stop", "0", "0", "10.5"]),
+        ("infinite kernel", ["segment", image, "--kernel-radius", "inf"]),
+        ("endless denoising", ["segment", image, "--denoise", "100000000"]),
+        ("missing argument", ["segment", image, "--seed", "0", "0"]),
         ("bad parameter", ["segment", image, "--alpha", "2"]),
         ("bad chamber ratio", ["segment", image, "--chamber-ratio", "0.5"]),
         ("negative handle width", ["segment", image, "--handles", "-1"]),
@@ -226,6 +231,12 @@ def test_manifest_rows_are_checked_with_their_line(tmp_path, capsys, monkeypatch
     assert code == 2 and "bad batch parameter: workers = 0" in err and not (tmp_path / "out").exists()
     manifest.write_text("case_id,image\na,a.nii.gz,extra\n")
     with pytest.raises(Exception, match="manifest.csv:2: more fields"):
+        read_manifest(manifest)
+    manifest.write_text("case_id,image,Config\na,a.nii.gz,typo.toml\n")  # a misspelt column is not ignored
+    with pytest.raises(Exception, match="unknown column Config"):
+        read_manifest(manifest)
+    manifest.write_bytes(b"\xff\xfe\x00binary")
+    with pytest.raises(Exception, match="not a text"):
         read_manifest(manifest)
     # --config is a path from the working directory, not from the manifest's folder
     monkeypatch.chdir(tmp_path)

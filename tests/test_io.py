@@ -214,14 +214,29 @@ def test_the_next_write_removes_a_killed_writes_temporary_and_nothing_else(tmp_p
     assert (tmp_path / "seg" / "mask.nii.gz").read_bytes() == b"new"
 
 
-def test_nan_voxels_in_nifti_are_reported(tmp_path):
-    # ITK's NIfTI reader turns NaN into 0, so the file itself is checked.
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
+def test_non_finite_voxels_in_nifti_are_reported(tmp_path, value):
+    # ITK's NIfTI reader turns NaN and infinities into numbers, so the file itself is checked.
     array = np.zeros((4, 5, 6), np.float32)
-    array[1, 2, 3] = np.nan
+    array[1, 2, 3] = value
     image = sitk.GetImageFromArray(array)
-    for name in ("nan.nii", "nan.nii.gz"):
+    for name in ("bad.nii", "bad.nii.gz"):
         sitk.WriteImage(image, str(tmp_path / name))
-        with pytest.raises(CarotidError, match="1 NaN voxels"):
+        with pytest.raises(CarotidError, match="1 NaN or infinite voxels"):
             read_image(tmp_path / name)
-    kept = read_image(write_image(Volume(array), tmp_path / "nan.mha"))
-    assert np.isnan(kept.array).sum() == 1
+    kept = read_image(write_image(Volume(array), tmp_path / "bad.mha"))
+    assert np.count_nonzero(~np.isfinite(kept.array)) == 1
+
+
+@pytest.mark.parametrize("size", [0.0, np.nan])
+def test_a_nifti_voxel_size_of_zero_or_nan_is_refused(tmp_path, size):
+    """ITK reads a pixdim of 0 or NaN as 1 mm: the header is checked."""
+    import gzip
+
+    path = tmp_path / "image.nii.gz"
+    sitk.WriteImage(sitk.GetImageFromArray(np.arange(120, dtype=np.float32).reshape(4, 5, 6)), str(path))
+    raw = bytearray(gzip.open(path).read())
+    raw[80:84] = np.float32(size).tobytes()  # pixdim[1], the first axis
+    path.write_bytes(gzip.compress(bytes(raw)))
+    with pytest.raises(CarotidError, match=r"voxel sizes .* mm \(pixdim\)"):
+        read_image(path)

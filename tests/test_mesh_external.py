@@ -13,12 +13,13 @@ from conftest import FLUID_STL, needs_fluid_stl
 
 from carotid.centerline import read_centerlines
 from carotid.cli import main
+from carotid.errors import CarotidError
 from carotid.mesh import build_mesh, check_surface, label_flat_caps
 from carotid.mesh.io import split_cells
 from carotid.mesh.layers import build_layers, tet_volumes
-from carotid.mesh.mesher import CORE_MIN_DIHEDRAL
+from carotid.mesh.mesher import CORE_MIN_DIHEDRAL, check_core_size
 from carotid.mesh.quality import min_dihedral
-from carotid.mesh.testing import faceted_nozzle, side_branch, stenotic_nozzle
+from carotid.mesh.testing import faceted_nozzle, labelled_tube, side_branch, stenotic_nozzle
 
 # The nozzle (mm): 12 mm pipe, 20-degree cone, 4 mm x 40 mm throat, sudden expansion back to 12 mm.
 RADIUS, THROAT, INLET, OUTLET, THROAT_LENGTH = 6.0, 2.0, 10.0, 30.0, 40.0
@@ -256,3 +257,79 @@ def test_remeshed_wall_of_the_real_carotid_stl_has_no_needle_left(monkeypatch, p
     change = (signed_volume(remeshed.points, remeshed.triangles) / signed_volume(surface.points, surface.triangles)
               - 1.0)
     assert -0.005 < change < 0.0
+
+
+# -------------------------------------------------------------------------------------------- bad input surfaces
+
+def binary_stl(path, points: np.ndarray, triangles: np.ndarray) -> None:
+    """Write a binary STL of ``triangles`` on ``points`` (mm) byte by byte, NaN coordinates included."""
+    record = np.dtype([("normal", "<f4", 3), ("corners", "<f4", (3, 3)), ("attribute", "<u2")])
+    data = np.zeros(len(triangles), record)
+    data["corners"] = points[triangles]
+    path.write_bytes(b"\0" * 80 + np.uint32(len(triangles)).tobytes() + data.tobytes())
+
+
+@pytest.fixture(scope="module")
+def tube():
+    """A small closed tube (3 mm radius, 20 mm long) as plain triangles and its labelled surface."""
+    labelled = labelled_tube(radius=3.0, length=20.0, size=1.0)
+    return np.asarray(labelled.points), labelled.regular_faces, labelled
+
+
+def _bad_file(kind: str, tube, folder):
+    """Write a bad surface file of the given kind into ``folder``; returns its path."""
+    points, triangles, labelled = tube
+    if kind == "empty":
+        (path := folder / "empty.stl").write_bytes(b"")
+    elif kind == "text":
+        (path := folder / "text.stl").write_text("this is not an stl\n")
+    elif kind == "nan":
+        points = points.copy()
+        points[5] = np.nan
+        binary_stl(path := folder / "nan.stl", points, triangles)
+    elif kind == "points":
+        pv.PolyData(points).save(path := folder / "points.vtp")
+    elif kind == "xyz":
+        binary_stl(path := folder / "tube.xyz", points, triangles)
+    elif kind == "image":
+        (path := folder / "image.nii.gz").write_bytes(b"\x1f\x8b not an image either")
+    elif kind == "flat":
+        flat = points.copy()
+        flat[:, 0] = 0.0
+        binary_stl(path := folder / "flat.stl", flat, triangles)
+    elif kind == "micrometres":
+        binary_stl(path := folder / "um.stl", points * 1000.0, triangles)
+    elif kind == "two":
+        binary_stl(path := folder / "two.stl", np.vstack([points, points + [10.0, 0.0, 0.0]]),
+                   np.vstack([triangles, triangles + len(points)]))
+    else:  # holes: the wall within 2.5 mm of two opposite points of the middle section cut away (curved rims)
+        centroids = points[triangles].mean(axis=1)
+        near = [np.linalg.norm(centroids - c, axis=1) < 2.5 for c in ([3.0, 0.0, 10.0], [-3.0, 0.0, 10.0])]
+        binary_stl(path := folder / "holes.stl", points, triangles[~(near[0] | near[1])])
+    return path
+
+
+@pytest.mark.parametrize("kind, message", [
+    ("empty", "not a readable surface file"), ("text", "not a readable surface file"),
+    ("nan", "non-finite coordinates"), ("points", "has no faces"), ("xyz", "not a surface file"),
+    ("image", "not a surface file"), ("flat", "the surface is flat"), ("micrometres", "--scale 0.001"),
+    ("two", "2 separate pieces"), ("holes", "stays open after capping")])
+def test_bad_surface_file_is_one_line_and_exit_2(tube, tmp_path, capfd, kind, message):
+    path = _bad_file(kind, tube, tmp_path)
+    assert main(["mesh", "--from-surface", str(path), "-o", str(tmp_path / "case"), "--layers", "1"]) == 2
+    err = capfd.readouterr().err  # file-descriptor level: VTK's own console output counts too
+    assert len(err.splitlines()) == 1 and err.startswith("carotid: error: ") and message in err, err
+    assert "--from-surface` caps" not in err
+
+
+def test_junk_surface_vtp_in_a_case_is_one_line(tmp_path, capfd):
+    (tmp_path / "surface.vtp").write_text("<VTKFile junk")
+    assert main(["mesh", str(tmp_path)]) == 2
+    err = capfd.readouterr().err
+    assert len(err.splitlines()) == 1 and "surface.vtp: not a readable surface file" in err, err
+
+
+def test_core_size_giving_too_many_tetrahedra_is_refused_at_once(tube):
+    with pytest.raises(CarotidError, match=r"about 4\.7e\+12 tetrahedra.*at least 0\.065 mm"):
+        build_mesh(tube[2], layers=1, size=0.001)
+    check_core_size(check_surface(tube[2]), 0.065)  # the size the message asks for is accepted

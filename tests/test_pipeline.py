@@ -3,6 +3,7 @@
 import csv
 import json
 import os
+import pickle
 import re
 import shutil
 import signal
@@ -53,10 +54,33 @@ def test_config_defaults_overrides_and_toml_round_trip(tmp_path):
     ({"segment": {"max_iterations": 1.5}}, "expected int"),
     ({"segment": {"alpha": 1.5}}, "alpha must lie in"),
     ({"segment": {"seeds_mm": [[1.0, 2.0]]}}, "[x, y, z]"),
+    ({"segment": {"seeds_mm": [[float("nan"), 0.0, 10.0]]}}, "finite numbers"),
+    ({"segment": {"kernel_radius_mm": float("inf")}}, "kernel_radius_mm must be a finite number"),
+    ({"segment": {"kernel_radius_mm": 1e6}}, "kernel_radius_mm must lie in"),
+    ({"segment": {"window": [0.0, float("nan")]}}, "window must be a finite number"),
+    ({"segment": {"denoise_iterations": 100000000}}, "denoise_iterations must lie in"),
+    ({"segment": {"tolerance": 0.0}}, "tolerance must be positive"),
+    ({"segment": {"far_mm": 0.0}}, "far_mm must be positive"),
+    ({"segment": {"plateau": -1.0}}, "plateau must lie in"),
+    ({"simulate": {"outlets": "windkessel"}}, "--outlets must be one of"),
+    ({"simulate": {"turbulence": "kepsilon"}}, "--turbulence must be"),
+    ({"simulate": {"outlets": "resistance", "resistance": [-1e9, 1e9]}}, "resistances must be positive"),
+    ({"simulate": {"outlets": "rcr", "rcr": [[1.0, 2.0]]}}, "three positive values"),
+    ({"simulate": {"waveform": "no-such-waveform.csv"}}, "cannot read waveform file"),
 ])
 def test_config_rejects_bad_values(overrides, message):
     with pytest.raises(CarotidError, match=message.replace("[", r"\[").replace("]", r"\]")):
         Config(overrides)
+
+
+def test_a_config_folder_and_a_case_record_that_is_not_one_are_clear_errors(tmp_path):
+    from carotid.pipeline import read_case
+
+    with pytest.raises(CarotidError, match="cannot read the config file"):
+        Config.from_toml(tmp_path)
+    (tmp_path / "case.json").write_text("[1, 2]")
+    with pytest.raises(CarotidError, match="not a record of stages"):
+        read_case(tmp_path)
 
 
 def test_bad_toml_is_one_clear_error(tmp_path, capsys):
@@ -167,6 +191,30 @@ def test_killed_run_resumes_to_the_same_result(small_image, tmp_path):
         scale = max(np.abs(uninterrupted[field]).max(), 1e-30)
         assert np.abs(resumed[field] - uninterrupted[field]).max() <= 1e-10 * scale, field
     assert [p.name for p in case.iterdir() if p.name.startswith(".")] == []
+
+
+def test_an_unexpected_stage_error_names_its_stage(tmp_path, monkeypatch):
+    """A stage that raises something other than CarotidError is retried by Dask (``StageFailure``) and, if it
+    persists, fails its case at that stage (before, ``failed_stage`` was empty)."""
+    import carotid.batch as batch
+    from carotid.batch import Case, StageFailure, _outcome, _stage_task
+
+    def broken(stage, *args):
+        raise ZeroDivisionError("float division by zero")
+
+    monkeypatch.setattr(batch, "run_stage", broken)
+    case = Case("a", tmp_path / "a.nii.gz", {})
+    (tmp_path / "a.nii.gz").write_bytes(b"")
+    with pytest.raises(StageFailure) as caught:
+        _stage_task(case, str(tmp_path / "a"), "mesh", {"status": "ok", "log": []})
+    restored = pickle.loads(pickle.dumps(caught.value))  # it crosses process boundaries
+
+    class Erred:
+        def result(self):
+            raise restored
+
+    assert _outcome(Erred()) == {"status": "failed", "failed_stage": "mesh",
+                                 "reason": "ZeroDivisionError: float division by zero"}
 
 
 def test_batch_isolates_a_corrupt_case(small_image, tmp_path, capsys):

@@ -227,3 +227,37 @@ def test_report_of_a_case_without_case_json(demo_run, tmp_path):
     record.write_text(json.dumps(report))
     page = build_report(case).read_text()
     assert "CT slices omitted: the input CT image is not recorded" in page
+
+
+def _report_lines(capfd, case):
+    """Exit code, stderr lines and HTML of `carotid report CASE`."""
+    from carotid.cli import main
+
+    code = main(["report", str(case)])
+    err = capfd.readouterr().err.strip().splitlines()
+    return code, err, (case / "report.html").read_text()
+
+
+def test_an_unreadable_record_is_a_warning_not_a_stage_that_has_not_run(tmp_path, capfd):
+    (tmp_path / "flow").mkdir()
+    (tmp_path / "flow" / "summary.json").write_text("{bad")
+    (tmp_path / "geometry.json").write_text("[1, 2, 3]")
+    code, err, page = _report_lines(capfd, tmp_path)
+    assert code == 0 and len(err) == 2, err
+    assert err[0].startswith("carotid: warning: geometry.json could not be read: not a JSON object (it holds [1, 2")
+    assert err[1].startswith("carotid: warning: flow/summary.json could not be read: not valid JSON")
+    warnings = page[page.index('id="warnings"'):]
+    assert "flow/summary.json could not be read" in warnings and "No stale, partial or failed" not in warnings
+    assert "The flow stage has not run" not in page and "The centerline stage has not run" not in page
+    assert "could not be built" not in page
+
+
+def test_a_junk_vtk_file_in_the_case_is_one_warning_without_vtk_output(tmp_path, capfd):
+    (tmp_path / "flow").mkdir()
+    (tmp_path / "flow" / "summary.json").write_text("null")
+    (tmp_path / "flow" / "indices.vtp").write_text("not VTK")
+    code, err, page = _report_lines(capfd, tmp_path)
+    assert code == 0 and len(err) == 2, err
+    assert "flow/summary.json could not be read: not a JSON object (it holds null)" in err[0]
+    assert "flow/indices.vtp could not be read: not a readable wall indices file (Error parsing XML" in err[1]
+    assert "flow/indices.vtp could not be read" in page and "could not be built" not in page

@@ -71,8 +71,11 @@ def summary(cl: Centerlines) -> str:
 
 def cmd_centerlines(args) -> int:
     """Run the stage from parsed arguments; prints the summary."""
-    if args.prune <= 0 or args.smoothing < 0:
-        raise CarotidError("--prune must be positive and --smoothing must not be negative")
+    from carotid.stages import CenterlineStageParameters
+
+    CenterlineStageParameters(prune=args.prune, smoothing=args.smoothing).validate()
+    if not args.prune > 0:
+        raise CarotidError("--prune must be positive")
     cl, vtp = run_centerlines(args.case_dir, prune=args.prune, smoothing=args.smoothing)
     print(f"centerlines written to {vtp} (features in {vtp.parent / 'geometry.json'}). {summary(cl)}")
     return 0

@@ -104,10 +104,15 @@ def compute_centerlines(levelset: Volume, mask: Volume | None = None, *, prune: 
     inside = (mask.array > 0) if mask is not None else (phi < 0)
     spacing_kji = levelset.spacing_kji
     lumen, report = largest_component(inside, float(np.prod(spacing_kji)))
+    if np.count_nonzero(phi[lumen] < 0) < 0.5 * np.count_nonzero(lumen):
+        raise CarotidError("the level set is not negative inside the lumen mask (is its sign flipped?); "
+                           "it must be a signed distance, negative inside")
     levelset = without_voids(levelset, lumen)
     phi = levelset.array
     r_max = float(max(-phi[lumen].min(), spacing_kji.max()))
     skel = skeletonize_lumen(lumen, spacing_kji, extend_mm=2.0 * r_max)
+    if np.count_nonzero(skel) < 2:
+        raise CarotidError(f"the lumen ({np.count_nonzero(lumen)} voxels) is too small to hold a vessel axis")
 
     try:
         radius_at = WallDistance(levelset, lumen)

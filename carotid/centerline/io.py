@@ -11,7 +11,6 @@ read VMTK's own centerlines.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +19,7 @@ import pyvista as pv
 from carotid.centerline.model import Branch, Centerlines
 from carotid.errors import CarotidError
 from carotid.io import atomic_path, write_json
+from carotid.io.vtkfile import read_record, read_vtk
 
 VTP_NAME = "centerlines.vtp"
 JSON_NAME = "geometry.json"
@@ -84,10 +84,7 @@ def read_centerlines(path: str | Path) -> Centerlines:
     vtp = path / VTP_NAME if path.is_dir() else path
     if not vtp.exists():
         raise CarotidError(f"{vtp}: no such file; run `carotid centerlines CASE_DIR` first")
-    try:
-        poly = pv.read(vtp)
-    except Exception as exc:  # vtk raises assorted types on corrupt files
-        raise CarotidError(f"{vtp}: cannot be read as VTK PolyData: {exc}") from None
+    poly = read_vtk(vtp, "centerline", remedy="rerun `carotid centerlines`")
     if RADIUS not in poly.point_data or "BranchName" not in poly.cell_data:
         raise CarotidError(f"{vtp}: not a carotid centerline file (arrays {RADIUS} and BranchName missing)")
     names = [str(n) for n in poly.cell_data["BranchName"]]
@@ -99,10 +96,8 @@ def read_centerlines(path: str | Path) -> Centerlines:
         ids = np.asarray(poly.get_cell(k).point_ids)
         branches.append(Branch(name, np.asarray(poly.points[ids], float), radii[ids],
                                *(None if a is None else a[ids] for a in optional)))
-    info: dict = {}
     geometry = vtp.parent / JSON_NAME
-    if geometry.exists():
-        info = json.loads(geometry.read_text())
+    info = read_record(geometry, "rerun `carotid centerlines`") or {}
     bif = info.get("bifurcation_mm")
     if bif is None:
         bif = branches[names.index("CCA")].points[-1] if "CCA" in names and len(names) > 1 else np.full(3, np.nan)

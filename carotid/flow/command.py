@@ -26,6 +26,9 @@ def cmd_simulate(args) -> int:
     from carotid.stages import FlowStageParameters
 
     case = Path(args.case_dir)
+    if args.flow is not None and not args.flow > 0:
+        raise CarotidError(f"--flow {args.flow:g}: a steady inflow must be positive (mL/s); leave --flow out for "
+                           "the built-in pulsatile waveform")
     if args.doppler_cca:
         from carotid.flow.duplex import check_doppler
 

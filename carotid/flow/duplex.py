@@ -50,11 +50,12 @@ miss the targets by several % at the carotid's Womersley number (~4).
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
 
-from carotid.errors import CarotidError
+from carotid.errors import CarotidError, CarotidWarning
 from carotid.flow.mesh import MM
 from carotid.flow.probes import PointLocator, ProbeSet, ProbeSpec
 
@@ -74,6 +75,9 @@ PLAQUE_ECST = 0.1
 """Diameter reduction (ECST) of the narrowest ICA section from which it counts as plaque (SRU normal vs < 50 %)."""
 CENTRELINE_SPACING = 1.0
 """Centreline probes: one every this many local diameters along each branch."""
+MATCHING_FRACTION = 0.7
+"""Centerlines with fewer of their points inside the mesh are not the mesh's (a case's own: 0.85-0.95, the rest
+beyond the caps; another case's tube over a bifurcation mesh: 0.43)."""
 
 SRU_PSV_CM_S = (125.0, 230.0)
 """SRU consensus ICA PSV bounds, cm/s: below the first < 50 %, up to the second 50-69 %, above it >= 70 %."""
@@ -268,9 +272,12 @@ def case_probes(case_dir, mesh, user=()) -> tuple[ProbeSet, dict]:
     -------
     ProbeSet, dict
         The located probes (a user's point outside the fluid raises CarotidError), and the meta of
-        :func:`duplex_probes` (``reason`` when there are no gates).
+        :func:`duplex_probes` (``reason`` when there are no gates).  Centerlines with under
+        ``MATCHING_FRACTION`` of their points inside the mesh are another's: no gates nor centreline probes.
+        When the case has centerlines but gets no gates, a CarotidWarning gives the reason.
     """
-    from carotid.centerline import geometry_features, read_centerlines
+    from carotid.centerline import geometry_features
+    from carotid.centerline import read_centerlines
 
     locator = PointLocator(mesh.points, mesh.tets)
     specs = [ProbeSpec(str(name), np.asarray(xyz, dtype=float), 0.0, "user") for name, xyz in user]
@@ -278,8 +285,16 @@ def case_probes(case_dir, mesh, user=()) -> tuple[ProbeSet, dict]:
     path = Path(case_dir) / "centerlines.vtp"
     if path.exists():
         cl = read_centerlines(path)
-        gates, meta = duplex_probes(cl, geometry_features(cl), locator)
-        specs += gates + centreline_probes(cl, locator)
+        inside = np.mean(locator.locate(np.concatenate([b.points for b in cl.branches]) * MM)[0] >= 0)
+        if inside < MATCHING_FRACTION:
+            meta = {"reason": f"the centerlines do not match the mesh: {100 * inside:.0f} % of their points lie "
+                              f"inside it, a case's own {100 * MATCHING_FRACTION:.0f} % or more (centerlines.vtp of "
+                              "another case or an earlier segmentation? rerun `carotid centerlines`)"}
+        else:
+            gates, meta = duplex_probes(cl, geometry_features(cl), locator)
+            specs += gates + centreline_probes(cl, locator)
+        if "reason" in meta:
+            warnings.warn(f"no virtual duplex: {meta['reason']}", CarotidWarning, stacklevel=2)
     return ProbeSet(mesh, specs, locator), meta
 
 

@@ -64,6 +64,10 @@ class FlowMesh:
         self.faces = np.ascontiguousarray(self.faces, dtype=np.int64)
         self.labels = np.asarray(self.labels, dtype=np.int64).ravel()
         n = len(self.points)
+        bad = np.count_nonzero(~np.isfinite(self.points).all(axis=1)) if self.points.ndim == 2 else 0
+        if bad:
+            raise CarotidError(f"{bad} nodes have non-finite coordinates (NaN or infinite): the mesh is corrupt; "
+                               "rebuild it with `carotid mesh`")
         if self.tets.ndim != 2 or self.tets.shape[1] != 4 or len(self.tets) == 0:
             raise CarotidError("the flow mesh has no tetrahedra")
         if self.faces.ndim != 2 or self.faces.shape[1] != 3 or len(self.faces) != len(self.labels):
@@ -129,17 +133,18 @@ class FlowMesh:
 
     @classmethod
     def from_vtu(cls, path) -> FlowMesh:
-        """Read ``mesh.vtu`` written by the mesh stage."""
-        import pyvista as pv
+        """Read ``mesh.vtu`` written by the mesh stage; CarotidError naming the file when it cannot be read or is
+        not a usable flow mesh."""
+        from carotid.io.vtkfile import read_vtk
 
         path = Path(path)
         if not path.is_file():
             raise CarotidError(f"{path} not found: run `carotid mesh` first")
+        grid = read_vtk(path, "mesh", remedy="rerun `carotid mesh`")
         try:
-            grid = pv.read(path)
-        except Exception as exc:  # VTK reports unreadable files in many ways
-            raise CarotidError(f"cannot read the mesh {path}: {exc}") from exc
-        return cls.from_pyvista(grid)
+            return cls.from_pyvista(grid)
+        except CarotidError as exc:
+            raise CarotidError(f"{path}: {exc}") from None
 
     def to_pyvista(self):
         """The mesh as a VMTK-style ``pyvista.UnstructuredGrid`` in mm (tets + labelled triangles)."""

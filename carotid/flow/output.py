@@ -25,12 +25,14 @@ read it.
 from __future__ import annotations
 
 import json
+import zipfile
 from pathlib import Path
 from xml.sax.saxutils import escape
 
 import h5py
 import numpy as np
 
+from carotid.errors import CarotidError
 from carotid.io import atomic_path
 from carotid.flow.mesh import FlowMesh
 
@@ -183,10 +185,25 @@ def save_checkpoint(path: Path, state: dict, meta: dict) -> None:
 
 
 def load_checkpoint(path: Path) -> tuple[dict, dict]:
-    """``(state, meta)`` saved by :func:`save_checkpoint`."""
-    with np.load(path, allow_pickle=False) as z:
-        state = {k: z[k] for k in z.files if k != "meta"}
-        meta = json.loads(str(z["meta"]))
-    for k in ("t", "step"):
-        state[k] = state[k].item()
+    """``(state, meta)`` saved by :func:`save_checkpoint`.
+
+    Raises
+    ------
+    CarotidError
+        ``<path>: not a readable checkpoint (<why>)`` for a file that is not such an archive (truncated, replaced,
+        or holding pickled objects, which are never loaded).
+    """
+    try:
+        if not zipfile.is_zipfile(path):
+            raise ValueError("not a NumPy .npz archive")
+        with np.load(path, allow_pickle=False) as z:
+            state = {k: z[k] for k in z.files if k != "meta"}
+            meta = json.loads(str(z["meta"]))
+        for k in ("t", "step"):
+            state[k] = state[k].item()
+        if not isinstance(meta, dict):
+            raise ValueError("its meta record is not a JSON object")
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+        reason = f"no {exc} entry" if isinstance(exc, KeyError) else str(exc)
+        raise CarotidError(f"{path}: not a readable checkpoint ({reason})") from None
     return state, meta

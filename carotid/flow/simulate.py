@@ -17,9 +17,11 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import signal
 import threading
 import time as _time
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -27,7 +29,7 @@ from typing import Callable
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from carotid.errors import CarotidError
+from carotid.errors import CarotidError, CarotidWarning
 from carotid.flow.cbs import CBSSolver, PressureSolver
 from carotid.flow.duplex import case_probes, duplex_summary
 from carotid.flow.mesh import INLET, MM, FlowMesh
@@ -142,6 +144,12 @@ class FlowParameters:
             raise CarotidError(f"--outlets must be one of {', '.join(OUTLET_MODELS)} (got {self.outlets!r})")
         if self.outlets == "split" and self.split is None:
             raise CarotidError("--outlets split needs the fractions: --split 0.65:0.35")
+        if self.resistance is not None and not all(math.isfinite(r) and r > 0 for r in self.resistance):
+            raise CarotidError(f"outlet resistances must be positive numbers, Pa s/m^3 (got {list(self.resistance)})")
+        if self.rcr is not None and not all(len(row) == 3 and all(math.isfinite(v) and v > 0 for v in row)
+                                            for row in self.rcr):
+            raise CarotidError("each RCR outlet needs three positive values: R_p (Pa s/m^3), C (m^3/Pa), R_d "
+                               f"(Pa s/m^3) (got {[list(row) for row in self.rcr]})")
         if not self.backflow >= 0:
             raise CarotidError(f"the backflow stabilisation coefficient must be >= 0 (got {self.backflow})")
         if self.rheology not in ("newtonian", "carreau", "casson"):
@@ -370,12 +378,15 @@ def simulate(mesh, case_dir, params: FlowParameters | None = None, resume: bool 
     fp = params.fingerprint(waveform, mesh)
     seconds = 0.0
     if resume == "auto":
-        resume = _checkpoint_fingerprint(ckpt) == fp
+        resume = _matching_checkpoint(ckpt, fp)
     if resume:
         if not ckpt.is_file():
             raise CarotidError(f"no checkpoint to resume from in {flow_dir}: run without --resume")
-        state, meta = load_checkpoint(ckpt)
-        if meta["fingerprint"] != fp:
+        try:
+            state, meta = load_checkpoint(ckpt)
+        except CarotidError as exc:
+            raise CarotidError(f"{exc}: delete it to start from t = 0") from None
+        if meta.get("fingerprint") != fp:
             raise CarotidError("the checkpoint was made with other settings (dt, split, waveform, turbulence...) "
                                "or another mesh: use the same options or run without --resume")
         solver.load_state(state)
@@ -489,12 +500,19 @@ def _run_steps(solver: CBSSolver, writer: FlowWriter, wall: WallShear, params: F
             raise KeyboardInterrupt
 
 
-def _checkpoint_fingerprint(path: Path) -> str | None:
-    """The fingerprint a checkpoint was made with; None when there is no readable checkpoint."""
+def _matching_checkpoint(path: Path, fp: str) -> bool:
+    """Whether ``resume="auto"`` continues from the checkpoint ``path``: it exists and was made with the
+    fingerprint ``fp``.  One that cannot be read is set aside as ``<name>.corrupt`` (a CarotidWarning says so),
+    so that the run, starting at t = 0, overwrites nothing that could still be examined."""
+    if not path.is_file():
+        return False
     try:
-        return load_checkpoint(path)[1].get("fingerprint")
-    except (CarotidError, OSError, ValueError, KeyError):
-        return None
+        return load_checkpoint(path)[1].get("fingerprint") == fp
+    except CarotidError as exc:
+        aside = path.with_name(f"{path.name}.corrupt")
+        path.replace(aside)
+        warnings.warn(f"{exc}: moved to {aside.name}; the run starts at t = 0", CarotidWarning, stacklevel=3)
+        return False
 
 
 def _output(writer: FlowWriter, solver: CBSSolver, wall: WallShear, params: FlowParameters, diag: dict) -> None:

@@ -37,6 +37,28 @@ CAROTID_PEAK_ML = 25.0
 CAROTID_HARMONICS = 10
 CAROTID_SAMPLES = 512
 
+PERIOD_RANGE_S = (0.2, 5.0)
+"""Cardiac periods a user waveform may have, s: heart rates of 12 to 300 beats a minute."""
+MIN_MEAN_FLOW_ML = 0.01
+"""Smallest mean inflow of a user waveform or steady flow, mL/s.  A carotid carries 2-20 mL/s; below this the
+adaptive time step, set by the inflow speed, spans a whole cycle, so the run resolves nothing."""
+
+
+def check_inflow(period_s: float, mean_ml_s: float, source: str) -> None:
+    """Raise CarotidError unless the period (s) lies in ``PERIOD_RANGE_S`` and the mean flow (mL/s) is at least
+    ``MIN_MEAN_FLOW_ML``; ``source`` names the input in the message."""
+    low, high = PERIOD_RANGE_S
+    if not low <= period_s <= high:
+        raise CarotidError(f"{source}: a cardiac period of {period_s:g} s is outside {low:g}-{high:g} s (heart rates "
+                           "of 12-300 per minute): check the time column, which is in seconds")
+    if not mean_ml_s > 0:
+        raise CarotidError(f"{source}: the mean flow is {mean_ml_s:.3g} mL/s: blood must enter through the CCA "
+                           "inlet on average (check the sign of the flow column)")
+    if not mean_ml_s >= MIN_MEAN_FLOW_ML:
+        raise CarotidError(f"{source}: a mean flow of {mean_ml_s:.3g} mL/s is below {MIN_MEAN_FLOW_ML:g} mL/s (a "
+                           "carotid carries 2-20 mL/s; the adaptive time step would span the whole cycle): check the "
+                           "flow, which is in mL/s")
+
 
 @dataclass(frozen=True, eq=False)
 class Waveform:
@@ -232,7 +254,8 @@ def read_waveform_csv(path, period: float | None = None) -> Waveform:
     ------
     CarotidError
         Missing file, a non-numeric, NaN or infinite field, a non-increasing time (the message names the
-        line), fewer than 4 rows, or an open period without ``period``.
+        line), fewer than 4 rows, an open period without ``period``, or a period or mean flow outside the
+        bounds of :func:`check_inflow`.
     """
     path = Path(path)
     try:
@@ -265,6 +288,8 @@ def read_waveform_csv(path, period: float | None = None) -> Waveform:
         raise CarotidError(f"{path}: line {linenos[-1]}: rows span {t[-1] - t[0]:g} s, more than the "
                            f"period {period:g} s")
     try:
-        return Waveform(period, t, q * ML)
+        waveform = Waveform(period, t, q * ML)
     except CarotidError as exc:
         raise CarotidError(f"{path}: {exc}") from None
+    check_inflow(waveform.period_s, waveform.mean_m3s / ML, str(path))
+    return waveform

@@ -256,20 +256,23 @@ def itk_messages():
                     messages.append(" ".join(lines))
 
 
-def _nifti_scan(path: Path) -> tuple[float, int]:
-    """The fraction of voxel data missing from a NIfTI-1 file, and its NaN voxels.
+def _nifti_scan(path: Path) -> tuple[float, int, tuple]:
+    """The fraction of voxel data missing from a NIfTI-1 file, its non-finite voxels and its voxel sizes.
 
-    ITK's reader fills the voxels of a truncated file with 0 and turns NaN into 0, both silently, so the
-    file is read once more as a stream: the data must cover ``prod(dim) * bitpix / 8`` bytes after
-    ``vox_offset`` (a truncated ``.gz`` stream counts as missing data), and a floating-point file is
-    scanned for NaN.  Files that are not NIfTI-1 give ``(0, 0)``.
+    ITK's reader fills the voxels of a truncated file with 0, turns NaN and infinities into numbers, and
+    reads a voxel size (``pixdim``) of 0 or NaN as 1 mm, all silently, so the file is read once more as a
+    stream: the data must cover ``prod(dim) * bitpix / 8`` bytes after ``vox_offset`` (a truncated ``.gz``
+    stream counts as missing data), and a floating-point file is scanned for NaN and infinities.  Files that
+    are not NIfTI-1 give ``(0, 0, ())``.
 
     Returns
     -------
     missing : float
         Fraction of the voxel data the file lacks (0 when complete; to 1 MiB for a cut ``.gz``).
-    nans : int
-        NaN voxels (0 for integer files).
+    bad : int
+        NaN or infinite voxels (0 for integer files).
+    pixdim : tuple of float
+        The header's voxel size along each of the image's axes, mm, as written.
     """
     import gzip
     import struct
@@ -279,11 +282,12 @@ def _nifti_scan(path: Path) -> tuple[float, int]:
     with opener(path, "rb") as f:
         header = f.read(348)
         if len(header) < 348:
-            return 0, 0
+            return 0, 0, ()
         endian = "<" if struct.unpack("<i", header[:4])[0] == 348 else ">"
         if struct.unpack(endian + "i", header[:4])[0] != 348:
-            return 0, 0
+            return 0, 0, ()
         dims = struct.unpack(endian + "8h", header[40:56])
+        pixdim = struct.unpack(endian + "8f", header[76:108])[1:1 + max(min(dims[0], 3), 0)]
         bitpix = struct.unpack(endian + "h", header[72:74])[0]
         expected = math.prod(max(d, 1) for d in dims[1:1 + max(min(dims[0], 7), 0)]) * bitpix // 8
         dtype = {16: "f4", 64: "f8"}.get(struct.unpack(endian + "h", header[70:72])[0])
@@ -296,11 +300,11 @@ def _nifti_scan(path: Path) -> tuple[float, int]:
                 if dtype is not None:
                     chunk = tail + chunk
                     usable = len(chunk) - len(chunk) % np.dtype(dtype).itemsize
-                    nans += int(np.count_nonzero(np.isnan(np.frombuffer(chunk[:usable], endian + dtype))))
+                    nans += int(np.count_nonzero(~np.isfinite(np.frombuffer(chunk[:usable], endian + dtype))))
                     tail = chunk[usable:]
         except (EOFError, zlib.error, gzip.BadGzipFile):
             pass  # a cut compressed stream: what was decoded counts
-        return max(expected - received, 0) / max(expected, 1), nans
+        return max(expected - received, 0) / max(expected, 1), nans, pixdim
 
 
 def read_image(path: str | os.PathLike, dtype=np.float32) -> Volume:
@@ -323,8 +327,8 @@ def read_image(path: str | os.PathLike, dtype=np.float32) -> Volume:
     CarotidError
         If the path is missing, is not an image, is not a scalar 3D volume, is a
         DICOM series with missing, repeated or unevenly stepped slices, or (NIfTI)
-        is truncated or holds NaN voxels.  Other formats keep NaN in the array,
-        which the stages refuse.  ITK's own messages are part of the error.
+        is truncated, holds NaN or infinite voxels or gives a voxel size of 0 or NaN.
+        Other formats keep NaN in the array, which the stages refuse.  ITK's own messages are part of the error.
 
     Warns
     -----
@@ -346,12 +350,15 @@ def read_image(path: str | os.PathLike, dtype=np.float32) -> Volume:
     for message in messages:
         warnings.warn(f"{path}: {message}", CarotidWarning, stacklevel=2)
     if path.is_file() and path.name.lower().endswith((".nii", ".nii.gz")):
-        missing, nans = _nifti_scan(path)
+        missing, bad, pixdim = _nifti_scan(path)
         if missing:
             raise CarotidError(f"{path}: the file is truncated: {100 * missing:.0f}% of its voxel data is missing "
                                "(an interrupted copy or download?)")
-        if nans:
-            raise CarotidError(f"{path}: image has {nans} NaN voxels")
+        if bad:
+            raise CarotidError(f"{path}: image has {bad} NaN or infinite voxels")
+        if not all(math.isfinite(h) and h != 0 for h in pixdim):
+            raise CarotidError(f"{path}: the header gives voxel sizes {', '.join(f'{h:g}' for h in pixdim)} mm "
+                               "(pixdim): a size of 0 or NaN would be read as 1 mm; correct the header")
     return _from_sitk(image, str(path), dtype, recorded_slice_thickness(path, image, reader))
 
 

@@ -5,9 +5,11 @@ output of ``carotid surface``); ``carotid mesh --from-surface FILE -o
 CASE_DIR`` meshes any surface file pyvista reads (VTP, VTK, STL, PLY, OBJ):
 a labelled closed surface is used as is, an open one gets a planar cap per
 boundary loop, an unlabelled closed one gets its flat end caps detected.
-The file must be in mm (``--scale 1000`` for metres: a surface spanning less
-than 0.5 units is refused).  A surface with self-intersecting or needle
-triangles has its wall remeshed in place first (``carotid.mesh.repair``).
+The file must be in mm (``--scale 1000`` for metres, ``--scale 0.001`` for
+micrometres: a surface spanning less than 0.5 or more than 1000 units is
+refused, and so is a flat one or one of several pieces).  A surface with
+self-intersecting or needle triangles has its wall remeshed in place first
+(``carotid.mesh.repair``).
 With ``--from-surface`` the case folder also gets the surface that was meshed
 (``surface.vtp``) and its centerlines (``centerlines.vtp``, from the surface's
 signed distance), so that ``carotid simulate`` (its Doppler gates and
@@ -24,28 +26,25 @@ import numpy as np
 import pyvista as pv
 
 from carotid.errors import CarotidError
+from carotid.io.vtkfile import read_vtk
 from carotid.mesh.boundary import LABELS, cap_open_ends, check_surface, edge_faces, label_flat_caps
 from carotid.mesh.core import CORES
 from carotid.mesh.io import write_mesh
 from carotid.mesh.mesher import build_mesh, median_edge
 from carotid.mesh.repair import remesh_wall, surface_defects
 from carotid.stages import MeshStageParameters
-from carotid.surface.external import METRES_EXTENT
-from carotid.surface.mesh import signed_volume
+from carotid.surface.external import SUFFIXES, check_extent
+from carotid.surface.mesh import face_components, signed_volume
 
 
 def read_surface(path: Path) -> pv.PolyData:
-    """Read a triangle surface file; CarotidError if it is missing or unreadable."""
-    if not path.is_file():
-        raise CarotidError(f"surface file not found: {path}")
-    try:
-        data = pv.read(path)
-    except Exception as exc:  # vtk readers raise assorted errors
-        raise CarotidError(f"cannot read the surface {path}: {exc}") from None
+    """Read a triangle surface file (mm or other units); CarotidError if it is missing, unreadable or has no faces."""
+    data = read_vtk(path, "surface", SUFFIXES)
     if not isinstance(data, pv.PolyData):
         data = data.extract_surface(algorithm="dataset_surface")
-    if data.n_cells == 0:
-        raise CarotidError(f"the surface {path} has no faces")
+    data = data.triangulate()
+    if not data.faces.size:
+        raise CarotidError(f"{path}: the surface has no faces ({data.n_points} points, no triangles or polygons)")
     return data
 
 
@@ -62,20 +61,28 @@ def external_surface(poly: pv.PolyData, scale: float | None = None) -> pv.PolyDa
     Raises
     ------
     CarotidError
-        Non-positive scale, or a surface spanning less than 0.5 mm (metres
-        given as mm).
+        Non-positive scale, a surface spanning less than 0.5 mm (metres given
+        as mm) or more than 1000 mm (micrometres), a flat surface, one of
+        several pieces, or one with holes that flat caps do not close.
     """
     poly = poly.triangulate().clean()
     if scale is not None:
         if not scale > 0:
             raise CarotidError(f"--scale {scale} must be positive")
         poly.points = np.asarray(poly.points) * float(scale)
-    extent = float(np.ptp(np.asarray(poly.points), axis=0).max())
-    if extent < METRES_EXTENT:
-        raise CarotidError(f"the surface spans {extent:.3g} mm: looks like metres, pass --scale 1000")
+    check_extent(np.asarray(poly.points, float))
+    pieces = np.unique(face_components(poly.n_points, poly.regular_faces)).size
+    if pieces > 1:
+        raise CarotidError(f"the surface has {pieces} separate pieces; a lumen is one: keep the lumen's piece only")
     _, _, counts = edge_faces(poly.regular_faces)
     if (counts == 1).any():
-        return cap_open_ends(poly)
+        capped = cap_open_ends(poly)
+        _, _, counts = edge_faces(capped.regular_faces)
+        if (counts == 1).any():
+            raise CarotidError(f"the surface stays open after capping its open ends ({int(np.sum(counts == 1))} "
+                               "boundary edges left: holes in the wall, or ends that are not simple loops); "
+                               "close the holes first")
+        return capped
     if LABELS in poly.cell_data:
         return poly
     return label_flat_caps(poly)

@@ -291,8 +291,8 @@ def _directions(points, wall_tris, inward, local_wall, rim_cap_normal, adjacency
 
 def _incident_faces(triangles: np.ndarray, n: int, vertices: np.ndarray) -> np.ndarray:
     """Faces around each of ``vertices`` (v, m): indices into ``triangles``, rows padded with their first face."""
-    incidence = sparse.csr_matrix((np.ones(triangles.size), (triangles.ravel(), np.repeat(np.arange(len(triangles)), 3))),
-                                  shape=(n, len(triangles)))
+    faces = np.repeat(np.arange(len(triangles)), 3)
+    incidence = sparse.csr_matrix((np.ones(triangles.size), (triangles.ravel(), faces)), shape=(n, len(triangles)))
     start, count = incidence.indptr[vertices], np.diff(incidence.indptr)[vertices]
     slot = np.arange(count.max())[None]
     return incidence.indices[np.where(slot < count[:, None], start[:, None] + slot, start[:, None])]

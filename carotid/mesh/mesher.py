@@ -9,7 +9,7 @@ import pyvista as pv
 
 from carotid.errors import CarotidError
 from carotid.mesh.boundary import LABELS, WALL, Surface, check_surface
-from carotid.mesh.core import boundary_faces, face_keys, mesh_core
+from carotid.mesh.core import boundary_faces, face_keys, mesh_core, regular_tet_volume
 from carotid.mesh.layers import BoundaryLayer, build_layers, tet_volumes
 from carotid.mesh.quality import (angle_summary, distribution, extreme_dihedrals, histogram, min_dihedral,
                                   prism_measures, radius_ratio, walk_layers)
@@ -35,6 +35,11 @@ not remove (on the benchmark surfaces all six rounds ran, for 3x the time, and c
 below the floor from 476 / 746 to 100 / 96 only by thinning the layer at 56-65 % of the wall vertices,
 against 7-15 % with gmsh); they are reported."""
 
+MAX_CORE_TETRAHEDRA = 20_000_000
+"""Most core tetrahedra :func:`build_mesh` is asked for: a carotid bifurcation (some 3 cm^3 of lumen) meshed at
+its default sizes has about a million, the finest published ones a few million; 20 million take gmsh hours and
+the flow solver more memory than a workstation has, so a size giving more is refused at once, not meshed."""
+
 DEGENERATE_PRISM = 0.1
 """A prism lower than this fraction of its requested height counts as degenerate in the report."""
 
@@ -44,6 +49,27 @@ def median_edge(surface: Surface) -> float:
     tri = surface.triangles[surface.labels == WALL]
     p = surface.points
     return float(np.median(np.linalg.norm(p[tri] - p[np.roll(tri, 1, axis=1)], axis=2)))
+
+
+def check_core_size(surface: Surface, size: float) -> None:
+    """Raise CarotidError when the core at ``size`` would exceed ``MAX_CORE_TETRAHEDRA``.
+
+    The estimate is the enclosed volume over the volume of a regular tetrahedron of edge ``size``.
+
+    Parameters
+    ----------
+    surface : Surface
+        The closed labelled surface, mm.
+    size : float
+        Core edge length, mm.
+    """
+    volume = abs(signed_volume(surface.points, surface.triangles))
+    estimate = volume / regular_tet_volume(size)
+    if estimate > MAX_CORE_TETRAHEDRA:
+        fit = 1.05 * (6.0 * np.sqrt(2.0) * volume / MAX_CORE_TETRAHEDRA) ** (1.0 / 3.0)  # 1.05: .2g rounds within 5%
+        raise CarotidError(f"a core element size of {size:g} mm would make about {estimate:.2g} tetrahedra in the "
+                           f"{volume:.4g} mm^3 lumen, over the {MAX_CORE_TETRAHEDRA:.0e} limit: use a size of at "
+                           f"least {fit:.2g} mm (--size, [mesh] size_mm)")
 
 
 def _vertex_caps(surface: Surface, n_points: int, layer: BoundaryLayer | None) -> np.ndarray:
@@ -274,6 +300,7 @@ def build_mesh(surface: pv.PolyData, *, layers: int = 10, ratio: float = 1.2, th
     size = median_edge(surf) if size is None else float(size)
     if size <= 0:
         raise CarotidError("the element size must be positive")
+    check_core_size(surf, size)
     scale = np.ones(np.unique(surf.triangles[surf.labels == WALL]).size)
     rounds = CORE_REPAIR_ROUNDS if core == "gmsh" else 0
     for repair in range(rounds + 1):

@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from carotid.errors import CarotidError
+from carotid.io.vtkfile import read_vtk
 from carotid.mesh.mesher import CORE_MIN_DIHEDRAL
 
 # Near-occlusion on CTA (Bartlett et al., AJNR 2006;27:632-637): a residual lumen of at most 1.3 mm with a
@@ -141,17 +143,24 @@ def stale_warnings(case_dir: Path, record: dict, geometry: dict, segmentation: d
     Returns
     -------
     list of str
-        One sentence per stale result; empty when everything is consistent.
+        One sentence per stale result; empty when everything is consistent.  A mesh or surface file that
+        cannot be read is left out here: the report's section of it names the file.
     """
     import pyvista as pv
 
     from carotid.pipeline import file_hash
 
+    def dataset(path: Path):
+        try:
+            return read_vtk(path, "VTK") if path.exists() else None
+        except CarotidError:
+            return None
+
     warnings = []
     mesh_path, surface_path = case_dir / "mesh.vtu", case_dir / "surface.vtp"
     flow_mesh = flow.get("mesh", {})
-    if flow_mesh and mesh_path.exists():
-        mesh = pv.read(mesh_path)
+    mesh = dataset(mesh_path) if flow_mesh else None
+    if mesh is not None:
         tets = int(np.count_nonzero(np.asarray(mesh.celltypes) == pv.CellType.TETRA))
         if (flow_mesh.get("tetrahedra"), flow_mesh.get("nodes")) != (tets, mesh.n_points):
             warnings.append(f"The flow results were computed on a mesh of {flow_mesh.get('tetrahedra', 0):,} "
@@ -159,8 +168,9 @@ def stale_warnings(case_dir: Path, record: dict, geometry: dict, segmentation: d
                             f"tetrahedra and {mesh.n_points:,} nodes. Flow, WSS maps and indices are stale: "
                             "rerun the simulate stage.")
     recorded_surface = mesh_quality.get("volume", {}).get("surface_mm3")
-    if recorded_surface and surface_path.exists():
-        volume = abs(pv.read(surface_path).volume)
+    surface = dataset(surface_path) if recorded_surface else None
+    if surface is not None:
+        volume = abs(surface.volume)
         if abs(volume - recorded_surface) > 1e-6 * recorded_surface:
             warnings.append(f"mesh.vtu was built from a surface of {recorded_surface:.1f} mm³; surface.vtp now "
                             f"encloses {volume:.1f} mm³. The mesh (and the flow) are stale: rerun the mesh stage.")

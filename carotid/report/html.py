@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import base64
 import html
+import warnings
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -28,8 +29,11 @@ from carotid.centerline.features import (BULB_EXCESS, BULB_WINDOW, CCA_WINDOW, D
 from carotid.centerline.plaque import calcified
 from carotid.flow.convergence import STATUS
 from carotid.flow.indices import HIGH_OSI, LOW_TAWSS_PA, node_areas
+from carotid.centerline import read_centerlines
+from carotid.io.vtkfile import read_record, read_vtk
 from carotid.flow.regions import INDEX_UNITS, REGION_INDICES, REGION_NAMES, region_statistics, wall_regions
-from carotid.io import atomic_path, read_image, read_json
+from carotid.errors import CarotidError, CarotidWarning
+from carotid.io import atomic_path, read_image
 from carotid.report import figures
 from carotid.report.checks import Check, quality_checks, stale_warnings, stenosis_category
 
@@ -92,9 +96,19 @@ class Section:
     note: str = ""
 
 
+# The JSON records of a case folder: Case attribute, file, and the stage that writes it.
+RECORDS = (("record", "case.json", "`carotid run`"), ("segmentation", "segmentation/report.json", "segment stage"),
+           ("geometry", "geometry.json", "centerlines stage"), ("surface_quality", "surface_quality.json",
+                                                                 "surface stage"),
+           ("mesh_quality", "mesh_quality.json", "mesh stage"), ("flow", "flow/summary.json", "simulate stage"),
+           ("convergence", "flow/convergence.json", "convergence study (carotid simulate --convergence)"))
+
+
 @dataclass
 class Case:
-    """The records of a case folder (each an empty dict when its stage, or the convergence study, has not run)."""
+    """The records of a case folder (each an empty dict when its stage, or the convergence study, has not run, or
+    its file cannot be read), its centerlines and wall indices surface (None when missing or unreadable), and
+    ``unreadable``: file name -> one sentence for each of them that exists but cannot be read."""
 
     dir: Path
     record: dict
@@ -104,13 +118,38 @@ class Case:
     mesh_quality: dict
     flow: dict
     convergence: dict = field(default_factory=dict)
+    centerlines: object = None
+    wall: object = None
+    unreadable: dict = field(default_factory=dict)
 
     @classmethod
     def read(cls, case_dir: Path) -> "Case":
-        return cls(case_dir, read_json(case_dir / "case.json"), read_json(case_dir / "segmentation" / "report.json"),
-                   read_json(case_dir / "geometry.json"), read_json(case_dir / "surface_quality.json"),
-                   read_json(case_dir / "mesh_quality.json"), read_json(case_dir / "flow" / "summary.json"),
-                   read_json(case_dir / "flow" / "convergence.json"))
+        """Read every record of ``case_dir``; a file that cannot be read is entered in ``unreadable``."""
+        unreadable = {}
+
+        def attempt(name: str, read, *args):
+            if not (case_dir / name).exists():
+                return None
+            try:
+                return read(*args)
+            except CarotidError as exc:
+                unreadable[name] = f"{name} could not be read: {str(exc).removeprefix(f'{case_dir / name}: ')}"
+                return None
+
+        records = {key: attempt(name, read_record, case_dir / name, f"rerun the {stage}") or {}
+                   for key, name, stage in RECORDS}
+        # centerlines.vtp is read with geometry.json: an unreadable geometry.json is entered once, as itself
+        centerlines = None if "geometry.json" in unreadable else \
+            attempt("centerlines.vtp", read_centerlines, case_dir / "centerlines.vtp")
+        wall = attempt("flow/indices.vtp", read_vtk, case_dir / "flow" / "indices.vtp", "wall indices", None,
+                       "rerun the simulate stage")
+        return cls(case_dir, **records, centerlines=centerlines, wall=wall, unreadable=unreadable)
+
+    def absent(self, stage: str, *names: str) -> str:
+        """Why the files ``names`` of ``stage`` are not shown: the first that could not be read, else the stage
+        has not run."""
+        return next((self.unreadable[name] for name in names if name in self.unreadable),
+                    f"The {stage} stage has not run") + "."
 
     def cap_names(self) -> dict[int, str]:
         """Cap id (``CellEntityIds`` 2, 3, ...) -> branch name, from ``geometry.json`` or the surface record."""
@@ -303,12 +342,14 @@ def stenosis_location(stenosis: dict) -> str:
             f"(LPS {point} mm)")
 
 
-def verdict_html(geometry: dict) -> str:
-    """The stenosis verdict: NASCET and ECST grades, category, diameters, location and the calcium there."""
+def verdict_html(geometry: dict, absent: str = "The centerline stage has not run.") -> str:
+    """The stenosis verdict: NASCET and ECST grades, category, diameters, location and the calcium there;
+    ``absent`` says why an empty ``geometry`` is (:meth:`Case.absent`)."""
     grade = geometry.get("stenosis")
     if not grade:
-        return ('<div class="verdict"><h3>Stenosis</h3><p class="missing">No stenosis grading: '
-                "the centerline stage has not run or found no gradable branch.</p></div>")
+        reason = "The centerline stage found no gradable branch." if geometry else absent
+        return ('<div class="verdict"><h3>Stenosis</h3><p class="missing">No stenosis grading. '
+                f"{html.escape(reason)}</p></div>")
     category = stenosis_category(grade["nascet"], grade["min_diameter_mm"], grade["distal_diameter_mm"])
     rows = [("ECST", f"{100 * grade['ecst']:.1f} %"),
             ("area reduction", f"{100 * grade['area_reduction']:.1f} %"),
@@ -331,13 +372,15 @@ def verdict_html(geometry: dict) -> str:
             f"NASCET category</p><table>{body}</table>{notes}</div>")
 
 
-def duplex_html(flow: dict) -> str:
+def duplex_html(flow: dict, absent: str = "The flow stage has not run.") -> str:
     """The virtual duplex of the first page (``flow/summary.json`` ``duplex``): ICA and CCA PSV and EDV, their
-    ratio, the SRU consensus grade with each criterion's category, and the pressure drop across the stenosis."""
+    ratio, the SRU consensus grade with each criterion's category, and the pressure drop across the stenosis;
+    ``absent`` says why an empty ``flow`` is (:meth:`Case.absent`)."""
     duplex = flow.get("duplex") or {}
     if "gates" not in duplex:
-        reason = duplex.get("reason", "the flow stage has not run" if not flow else "summary.json predates it")
-        return f'<div class="verdict" id="duplex"><h3>Virtual duplex</h3><p class="missing">None: {html.escape(reason)}.</p></div>'
+        reason = f"None: {duplex.get('reason', 'summary.json predates it')}." if flow else f"None. {absent}"
+        return (f'<div class="verdict" id="duplex"><h3>Virtual duplex</h3><p class="missing">{html.escape(reason)}'
+                "</p></div>")
     ica, cca, sru, pressure = duplex["gates"]["ICA"], duplex["gates"]["CCA"], duplex["sru"], duplex["pressure"]
     ratio = pressure["ratio_mean"]
     rows = [("ICA PSV", f"{ica['psv_cm_s']:.0f} cm/s", sru["by_psv"]),
@@ -403,13 +446,12 @@ def _table_html(table: Table) -> str:
 
 def profile_figure(case: Case) -> bytes | None:
     """The diameter profile along the CCA and the graded branch, or None without centerlines."""
-    from carotid.centerline import read_centerlines
     from carotid.centerline.axes import arclength
     from carotid.centerline.features import grading_profiles
 
-    if not (case.dir / "centerlines.vtp").exists():
+    if case.centerlines is None:
         return None
-    branches = {b.name: b for b in read_centerlines(case.dir / "centerlines.vtp").branches}
+    branches = {b.name: b for b in case.centerlines.branches}
     grade = case.geometry.get("stenosis")
     name = grade["branch"] if grade else "ICA"
     target = branches.get(name)
@@ -430,8 +472,10 @@ def profile_figure(case: Case) -> bytes | None:
 
 
 def case_warnings(case: Case) -> list[str]:
-    """Every stale result, partial result and failed quality check of a case, one sentence each."""
-    warnings = stale_warnings(case.dir, case.record, case.geometry, case.segmentation, case.mesh_quality,
+    """Every unreadable record, stale result, partial result and failed quality check of a case, one sentence
+    each."""
+    warnings = [f"{message}." for message in case.unreadable.values()]
+    warnings += stale_warnings(case.dir, case.record, case.geometry, case.segmentation, case.mesh_quality,
                               case.flow)
     failed = [c for c in quality_checks(case.segmentation, case.surface_quality, case.mesh_quality, case.flow)
               if not c.passed]
@@ -446,23 +490,19 @@ def case_warnings(case: Case) -> list[str]:
 
 def summary_html(case: Case) -> str:
     """The clinical first page."""
-    import pyvista as pv
-
-    from carotid.centerline import read_centerlines
-
     warnings = case_warnings(case)
     notes = "".join(f"<li>{html.escape(w)}</li>" for w in warnings) or '<li class="ok">No stale, partial or ' \
                                                                         "failed results.</li>"
     profile = profile_figure(case)
-    top = [verdict_html(case.geometry),
+    top = [verdict_html(case.geometry, case.absent("centerline", "geometry.json")),
            "<div>" + (_figure("Lumen diameter along the CCA and the graded branch, with the stenosis and its references",
                               profile, "profile") if profile else
-                      '<p class="missing">No centerlines: no diameter profile.</p>') + duplex_html(case.flow) + "</div>",
+                      '<p class="missing">No centerlines: no diameter profile.</p>')
+           + duplex_html(case.flow, case.absent("flow", "flow/summary.json")) + "</div>",
            f'<div class="warnings" id="warnings"><h3>Warnings</h3><ul>{notes}</ul></div>']
     parts = [f'<div class="top">{"".join(top)}</div>']
 
-    indices_path = case.dir / "flow" / "indices.vtp"
-    wall = pv.read(indices_path) if indices_path.exists() else None
+    wall = case.wall
     if wall is not None:
         maps = []
         for name, label, cmap in WALL_MAPS:
@@ -472,16 +512,17 @@ def summary_html(case: Case) -> str:
             maps.append(_figure(f"{label}: colour scale {clip}", figures.wall_map(wall, name, label, clim, cmap)))
         parts.append(f'<div class="maps" id="wss-maps">{"".join(maps)}</div>')
     else:
-        parts.append('<p class="missing">The flow stage has not run: no wall shear stress maps.</p>')
+        parts.append(f'<p class="missing">{html.escape(case.absent("flow", "flow/indices.vtp", "flow/summary.json")[:-1])}: no wall shear '
+                     'stress maps.</p>')
     if case.flow:
         parts.append(convergence_html(case))
 
     left = []
-    cl = read_centerlines(case.dir / "centerlines.vtp") if (case.dir / "centerlines.vtp").exists() else None
+    cl = case.centerlines
     geometry = geometry_features(cl) if cl is not None else {}
     surface_path = case.dir / "surface.vtp"
     if surface_path.exists() and cl is not None:
-        surface = pv.read(surface_path)
+        surface = read_vtk(surface_path, "surface", remedy="rerun the surface stage")
         ids = np.asarray(surface["CellEntityIds"])
         caps = case.cap_names()
         cap_ids = sorted(set(np.unique(ids).tolist()) - {1})
@@ -635,14 +676,12 @@ def convergence_table(study: dict, quantity: str, unit: str) -> Table:
 def convergence_html(case: Case) -> str:
     """The grid convergence study of the first page: the TAWSS table per branch and the per-node GCI map of TAWSS
     (``flow/convergence.json`` and ``flow/convergence.vtp``), or a note when no study was run."""
-    import pyvista as pv
-
     if not case.convergence:
         return ('<p class="missing" id="convergence">No convergence study (carotid simulate --convergence): the '
                 "discretisation error of the wall indices is not estimated.</p>")
     parts = [_table_html(convergence_table(case.convergence, "TAWSS", "Pa"))]
     path = case.dir / "flow" / "convergence.vtp"
-    wall = pv.read(path) if path.exists() else None
+    wall = read_vtk(path, "convergence map", remedy="rerun carotid simulate --convergence") if path.exists() else None
     gci = 100.0 * np.asarray(wall["TAWSS_GCI"], dtype=float) if wall is not None else np.array([np.nan])
     if np.isfinite(gci).any():
         wall.point_data["TAWSS_GCI_percent"] = gci
@@ -714,12 +753,10 @@ def _triangle_min_angles(surface) -> np.ndarray:
 
 def geometry_section(case: Case) -> Section:
     """Branches, stenosis gradings, caps and the surface quality."""
-    import pyvista as pv
-
     section = Section("Geometry: centerlines, stenosis and surface")
     geometry = case.geometry
     if not geometry and not (case.dir / "surface.vtp").exists():
-        section.note = "The centerline and surface stages have not run."
+        section.note = case.absent("centerline", "geometry.json")
         return section
     branch_rows = [(b["name"], f"{b['length_mm']:.1f}", f"{2 * b['mean_radius_mm']:.2f}",
                     f"{2 * b['min_radius_mm']:.2f}", f"{2 * b['max_radius_mm']:.2f}", f"{b['tortuosity']:.3f}",
@@ -742,8 +779,9 @@ def geometry_section(case: Case) -> Section:
     section.tables.append(Table("Centerline record", flatten({k: v for k, v in geometry.items() if k not in skip})))
     if (case.dir / "surface.vtp").exists():
         section.figures.append(("Smallest angle of each surface triangle",
-                                figures.histogram({"surface": _triangle_min_angles(pv.read(case.dir / "surface.vtp"))},
-                                                  "degrees")))
+                                figures.histogram({"surface": _triangle_min_angles(
+                                    read_vtk(case.dir / "surface.vtp", "surface", remedy="rerun the surface stage"))},
+                                    "degrees")))
     section.tables.append(checks_table(quality_checks({}, case.surface_quality, {}, {})))
     section.tables.append(Table("Surface record", flatten({k: v for k, v in case.surface_quality.items()
                                                            if k != "caps"})))
@@ -752,14 +790,12 @@ def geometry_section(case: Case) -> Section:
 
 def mesh_section(case: Case) -> Section:
     """A cut through the volume mesh, a close-up of the wall layers, and the quality figures."""
-    import pyvista as pv
-
     section = Section("Volume mesh")
     path = case.dir / "mesh.vtu"
     if not path.exists():
         section.note = "The mesh stage has not run."
         return section
-    mesh = pv.read(path)
+    mesh = read_vtk(path, "mesh", remedy="rerun the mesh stage")
     section.figures.append(("Tetrahedra behind a plane through the mesh centre (layer and core regions)",
                             figures.mesh_cut_view(mesh)))
     section.figures.append(("Close-up of the wall layers", figures.mesh_cut_view(mesh, zoom=4.0)))
@@ -773,7 +809,7 @@ def flow_section(case: Case) -> Section:
     section = Section("Flow and wall shear stress")
     summary = case.flow
     if not summary:
-        section.note = "The flow stage has not run."
+        section.note = case.absent("flow", "flow/summary.json")
         return section
     section.tables.append(checks_table(quality_checks({}, {}, {}, summary)))
     units = {"TAWSS": "Pa", "OSI": "-", "RRT": "1/Pa", "ECAP": "1/Pa", "transWSS": "Pa", "TWSSG": "Pa/s"}
@@ -800,6 +836,9 @@ def flow_section(case: Case) -> Section:
 def parameters_section(case: Case) -> Section:
     """Stage timings and versions from ``case.json``."""
     section = Section("Run record")
+    if "case.json" in case.unreadable:
+        section.note = f"{case.unreadable['case.json']}."
+        return section
     if not case.record:
         section.note = "No case.json: the case was built by the per-stage commands, which record no timings."
         return section
@@ -821,10 +860,12 @@ def _section_html(section: Section) -> str:
 
 
 def _guarded(build, *args) -> str:
-    """The HTML of one part of the report, or a note naming the error that stopped it."""
+    """The HTML of one part of the report, or a note naming the error that stopped it (and a CarotidWarning)."""
     try:
         result = build(*args)
     except Exception as exc:  # noqa: BLE001 - a broken record must not stop the rest of the report
+        warnings.warn(f"the report's {build.__name__.replace('_', ' ')} could not be built ({type(exc).__name__}: "
+                      f"{exc}): check the records it shows", CarotidWarning, stacklevel=2)
         return f'<p class="missing">This part could not be built: {html.escape(type(exc).__name__)}: ' \
                f"{html.escape(str(exc))}</p>"
     return result if isinstance(result, str) else _section_html(result)
@@ -838,6 +879,8 @@ def build_report(case_dir: str | Path) -> Path:
     """
     case_dir = Path(case_dir)
     case = Case.read(case_dir)
+    for message in case.unreadable.values():
+        warnings.warn(message, CarotidWarning, stacklevel=2)
     stamp = datetime.now(timezone.utc).isoformat(timespec="seconds")
     details = [_guarded(build, case) for build in (segmentation_section, geometry_section, mesh_section,
                                                    flow_section, parameters_section)]

@@ -21,8 +21,12 @@ def grid_mm(shape) -> list[np.ndarray]:
 
 
 def check_points(volume: Volume, points_xyz: np.ndarray, what: str) -> None:
-    """Raise CarotidError if a world point (mm) lies outside the image."""
-    outside = ~volume.contains(np.atleast_2d(points_xyz))
+    """Raise CarotidError if a world point (mm) is not finite or lies outside the image."""
+    points = np.atleast_2d(np.asarray(points_xyz, float))
+    if not np.isfinite(points).all():
+        bad = points[~np.isfinite(points).all(axis=1)][0]
+        raise CarotidError(f"{what} ({bad[0]:g}, {bad[1]:g}, {bad[2]:g}) mm is not a finite point")
+    outside = ~volume.contains(points)
     if outside.any():
         bad = np.atleast_2d(points_xyz)[outside][0]
         lo = volume.index_to_world(np.zeros(3))

@@ -36,6 +36,13 @@ from carotid.segment.preprocess import denoise, edge_stopping, window_hu
 from carotid.segment.wall import outer_wall, trunk
 
 
+MAX_KERNEL_MM = 100.0
+"""Largest GPF kernel support, mm: five times the default, past an aorta's radius; the kernel's FFT grid is
+padded by it."""
+MAX_DENOISE_ITERATIONS = 1000
+"""Most curvature-diffusion iterations: a few tens smooth a CT's noise; 1000 take minutes on a 256^3 region."""
+
+
 @dataclass
 class SegmentParameters:
     """Parameters of the GPF segmentation, with their units.
@@ -270,6 +277,10 @@ class SegmentParameters:
 
     def validate(self) -> "SegmentParameters":
         """Raise CarotidError for values outside their meaningful range."""
+        for name, value in vars(self).items():
+            numbers = value if isinstance(value, list) else [value]
+            if any(isinstance(v, float) and not np.isfinite(v) for v in numbers):
+                raise CarotidError(f"bad segmentation parameter: {name} must be a finite number (got {value!r})")
         checks = [
             (0.0 <= self.alpha < 1.0 and 0.0 <= self.refine_alpha < 1.0, "alpha must lie in [0, 1)"),
             (self.refine_radius_mm >= 0 and self.refine_sigma_mm >= 0, "refine_* must not be negative"),
@@ -280,18 +291,23 @@ class SegmentParameters:
             (self.level_mm >= 0 and self.fold >= 0, "level_mm and fold must not be negative"),
             (0 <= self.barrier < 1 and self.barrier_reach_mm > 0, "barrier must lie in [0, 1), barrier_reach_mm > 0"),
             (0 <= self.half_maximum <= 1, "half_maximum must lie in [0, 1]"),
+            (0 <= self.plateau < 1, "plateau must lie in [0, 1) (0: off)"),
             (0 <= self.join_contrast < 1, "join_contrast must lie in [0, 1)"),
             (self.chamber_ratio == 0 or self.chamber_ratio > 1, "chamber_ratio must be 0 (off) or above 1"),
             (self.chamber_reach_mm > 0, "chamber_reach_mm must be positive"),
             (0 <= self.companion_depth < 1, "companion_depth must lie in [0, 1)"),
-            (self.kernel_radius_mm > 0, "kernel_radius_mm must be positive"),
+            (0 < self.kernel_radius_mm <= MAX_KERNEL_MM and self.refine_radius_mm <= MAX_KERNEL_MM,
+             f"kernel_radius_mm must lie in (0, {MAX_KERNEL_MM:g}] mm, refine_radius_mm at most that"),
             (self.sigma_mm >= 0, "sigma_mm must not be negative"),
             (self.potential_scale > 0, "potential_scale must be positive"),
             (self.edge_beta > 0, "edge_beta must be positive"),
             (self.seed_radius_mm > 0, "seed_radius_mm must be positive"),
             (0 < self.cfl < 1, "cfl must lie in (0, 1)"),
             (self.max_iterations > 0, "max_iterations must be positive"),
-            (self.denoise_iterations >= 0, "denoise_iterations must not be negative"),
+            (self.tolerance > 0, "tolerance must be positive (the fraction of front voxels that may still move)"),
+            (self.far_mm > 0, "far_mm must be positive"),
+            (0 <= self.denoise_iterations <= MAX_DENOISE_ITERATIONS,
+             f"denoise_iterations must lie in [0, {MAX_DENOISE_ITERATIONS}]"),
             (self.handle_mm >= 0, "handle_mm must not be negative"),
             (self.deblur_iterations >= 0 and self.deblur_gain > 0 and self.deblur_smooth_mm >= 0,
              "deblur_iterations and deblur_smooth_mm must not be negative, deblur_gain must be positive"),
@@ -732,6 +748,11 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
     if stops_xyz is not None and len(stops_xyz):
         stops_xyz = np.atleast_2d(np.asarray(stops_xyz, float))
         check_points(volume, stops_xyz, "stop point")
+        if seeds_xyz is not None and len(seeds_xyz):
+            gap = np.linalg.norm(stops_xyz[:, None] - np.atleast_2d(seeds_xyz)[None], axis=2)
+            if np.any(gap <= params.seed_radius_mm):
+                raise CarotidError(f"a stop point lies within {params.seed_radius_mm:g} mm of a seed (the seed's "
+                                   "sphere): a stop point marks a structure to keep out, away from the seeds")
         stops = point_mask(volume.world_to_index(stops_xyz), image.shape)
     if seeds_kji is not None:
         # Each seed sphere grows to half the lumen's radius measured there, so that in a wide vessel (an aorta)
@@ -859,8 +880,11 @@ class SegmentStageParameters(SegmentParameters):
 
     def validate(self) -> "SegmentStageParameters":
         """Raise CarotidError for bad values, seeds and stop points included."""
-        if any(len(point) != 3 for point in [*self.seeds_mm, *self.stops_mm]):
-            raise CarotidError("bad segmentation parameter: each seed and stop point must be [x, y, z] in mm")
+        points = [*self.seeds_mm, *self.stops_mm]
+        if any(not isinstance(point, list) or len(point) != 3 for point in points) or not np.all(
+                np.isfinite(np.asarray(points, float))):
+            raise CarotidError("bad segmentation parameter: each seed and stop point must be [x, y, z] in mm, "
+                               "finite numbers")
         super().validate()
         return self
 

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from carotid.errors import CarotidError
+from carotid.stages import SurfaceStageParameters
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -52,6 +53,9 @@ def run(args) -> int:
     from carotid.surface.pipeline import (build_surface, build_surface_keeping_caps, read_levelset_and_centerlines,
                                           write_surface)
 
+    SurfaceStageParameters(target_edge_mm=args.target_edge, flow_extension_radii=args.flow_extensions,
+                           edge_radius_ratio=0.0 if args.edge_radius_ratio is None else args.edge_radius_ratio
+                           ).validate()  # the [surface] ranges; a ratio of 0 is refused by build_surface
     if args.from_surface is not None:
         case_dir, closed, levelset, centerlines = _external(args)
     elif args.case_dir is None:
@@ -61,8 +65,6 @@ def run(args) -> int:
             raise CarotidError("--scale and --reclip apply to --from-surface only")
         case_dir = args.case_dir
         levelset, centerlines = read_levelset_and_centerlines(case_dir)
-    if args.flow_extensions < 0:
-        raise CarotidError(f"--flow-extensions {args.flow_extensions} must not be negative")
     size = {"target_edge_mm": args.target_edge, "edge_radius_ratio": args.edge_radius_ratio,
             "flow_extension_radii": args.flow_extensions}
     if args.from_surface is not None and not args.reclip:

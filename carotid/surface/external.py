@@ -23,6 +23,7 @@ from scipy.optimize import linear_sum_assignment
 from carotid.centerline.model import Centerlines
 from carotid.errors import CarotidError
 from carotid.io import Volume
+from carotid.io.vtkfile import read_vtk
 from carotid.mesh.boundary import INLET, label_flat_caps
 from carotid.surface.clip import planar_cap
 from carotid.surface.mesh import WALL, boundary_loops, from_polydata, largest_component, signed_volume, to_polydata
@@ -31,6 +32,43 @@ from carotid.surface.quality import manifold_report, self_intersections
 
 SUFFIXES = (".stl", ".vtp", ".vtk", ".obj", ".ply")
 METRES_EXTENT = 0.5  # a carotid bifurcation spans several cm: below 0.5 units it is in metres
+MICROMETRES_EXTENT = 1000.0
+"""Largest span of a lumen surface, mm.  A neck CT or MR angiogram covers at most the aortic arch to the skull
+base, some 300 mm, so a surface spanning over 1 m is not in mm: micrometres (or a scaling slip) give 1000 times
+the size, and meshing it at the default edge lengths would not end."""
+FLAT_RATIO = 1e-3
+"""Smallest thickness of a lumen surface (its span across its thinnest principal direction) as a fraction of its
+largest span.  A 1 mm vessel 100 mm long is 1e-2; below 1e-3 the surface is flat (a squashed or 2-D export)
+and encloses no volume to mesh."""
+
+
+def check_extent(points: np.ndarray, where: str = "") -> None:
+    """Raise CarotidError unless the points span a lumen's size in mm, in all three directions.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+        Surface vertices, in the units the caller will mesh in (mm).
+    where : str
+        Prefix of the messages (the file, ``"path: "``), or empty.
+
+    Raises
+    ------
+    CarotidError
+        A span below ``METRES_EXTENT`` (metres: ``--scale 1000``) or above ``MICROMETRES_EXTENT``
+        (micrometres: ``--scale 0.001``), or a thickness below ``FLAT_RATIO`` of the span (flat).
+    """
+    extent = float(np.ptp(points, axis=0).max())
+    if extent < METRES_EXTENT:
+        raise CarotidError(f"{where}the surface spans {extent:.3g} mm: looks like metres, pass --scale 1000")
+    if extent > MICROMETRES_EXTENT:
+        raise CarotidError(f"{where}the surface spans {extent:.3g} mm, more than a neck angiogram covers: looks "
+                           "like micrometres, pass --scale 0.001")
+    centred = points - points.mean(axis=0)
+    thickness = float(np.ptp(centred @ np.linalg.svd(centred, full_matrices=False)[2][2]))
+    if thickness < FLAT_RATIO * extent:
+        raise CarotidError(f"{where}the surface is flat ({thickness:.3g} mm thick across its thinnest direction, "
+                           f"{extent:.3g} mm long): a lumen surface encloses a volume; export it in 3-D")
 
 
 def _close_loops(points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
@@ -81,23 +119,16 @@ def load_external_surface(path: str | Path, scale: float | None = None) -> tuple
     Raises
     ------
     CarotidError
-        Unreadable file, no triangles, coordinates that look like metres, a non-manifold surface, open ends
-        whose flat caps would cross the surface (badly non-planar or folded rims), or
-        open ends that are not simple loops.
+        Unreadable file, no triangles, non-finite coordinates, coordinates that look like metres or micrometres, a
+        flat surface, a non-manifold surface, open ends whose flat caps would cross the surface (badly non-planar
+        or folded rims), or open ends that are not simple loops.
     """
     path = Path(path)
-    if path.suffix.lower() not in SUFFIXES:
-        raise CarotidError(f"{path}: unsupported surface format (use one of {', '.join(SUFFIXES)})")
-    if not path.is_file():
-        raise CarotidError(f"{path}: no such file")
-    try:
-        mesh = pv.read(path)
-    except Exception as exc:  # VTK readers raise various errors
-        raise CarotidError(f"{path}: cannot read the surface ({exc})") from None
+    mesh = read_vtk(path, "surface", SUFFIXES)
     if not isinstance(mesh, pv.PolyData):
         mesh = mesh.extract_surface()
     mesh = mesh.triangulate().clean(tolerance=1e-9, absolute=False)
-    if mesh.n_cells == 0:
+    if not mesh.faces.size:
         raise CarotidError(f"{path}: the file holds no triangles")
     points, faces, _ = from_polydata(pv.PolyData(mesh.points, mesh.faces))
     if scale is not None:
@@ -105,9 +136,7 @@ def load_external_surface(path: str | Path, scale: float | None = None) -> tuple
             raise CarotidError(f"--scale {scale} must be positive")
         points = points * float(scale)
     points, faces, _ = largest_component(points, faces)
-    extent = float(np.ptp(points, axis=0).max())
-    if extent < METRES_EXTENT:
-        raise CarotidError(f"{path}: the surface spans {extent:.3g} units: looks like metres, pass --scale 1000")
+    check_extent(points, f"{path}: ")
     report = manifold_report(len(points), faces)
     if report["nonmanifold_edges"] or report["nonmanifold_vertices"]:
         raise CarotidError(f"{path}: the surface is not a 2-manifold ({report['nonmanifold_edges']} edges in more "

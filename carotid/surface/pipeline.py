@@ -3,11 +3,13 @@ or an external closed surface + its centerlines -> the same surface remeshed, it
 
 from __future__ import annotations
 
+import itertools
 import json
 from pathlib import Path
 
 import numpy as np
 import pyvista as pv
+from scipy import ndimage
 
 from carotid.centerline.model import Centerlines
 from carotid.errors import CarotidError
@@ -52,12 +54,58 @@ def build_surface(levelset: Volume, centerlines: Centerlines, *, target_edge_mm:
     quality : dict
         ``surface_quality`` of the result.
     """
-    target = _size_target(centerlines, target_edge_mm, edge_radius_ratio, edge_bounds_mm)
+    check_centerlines_match(levelset, centerlines)
+    target = _size_target(centerlines, target_edge_mm, edge_radius_ratio, edge_bounds_mm, flow_extension_radii)
     surface = extract_surface(levelset)
     clipped, caps = clip_surface(surface, centerlines, inset_radii=inset_radii,
                                  flow_extension_radii=flow_extension_radii, domain=levelset)
     smoothed = taubin_smooth(clipped, smoothing_iterations)
     return _finish(smoothed, [c["name"] for c in caps], target, remesh_iterations)
+
+
+def check_centerlines_match(levelset: Volume, centerlines: Centerlines) -> None:
+    """Raise CarotidError unless the centerlines run inside this level set's lumen and reach each of its open ends.
+
+    Centerlines of another case (or of an older segmentation) would be clipped where they are not: ends the
+    lumen leaves the image by would be closed as wall without a word.  Every centerline point must lie in the
+    image with the level set below one voxel there (trilinear), and every place where the lumen crosses the image
+    border (a connected patch of lumen voxels on a face of the grid, of equivalent radius r at least half the
+    smallest end radius of the branches) must have a branch end within 2 r + one voxel of its centroid.
+
+    Parameters
+    ----------
+    levelset : Volume
+        Signed distance in mm, negative inside.
+    centerlines : Centerlines
+        Centerlines (mm) said to be of this lumen.
+    """
+    voxel = max(levelset.spacing)
+    shape = np.asarray(levelset.array.shape)
+    points = np.vstack([b.points for b in centerlines.branches])
+    kji = levelset.world_to_index(points)
+    phi = ndimage.map_coordinates(levelset.array, kji.T, order=1, mode="nearest")
+    outside = np.any((kji < -0.5) | (kji > shape - 0.5), axis=1) | (phi > voxel)
+    if outside.any():
+        raise CarotidError(f"the centerlines do not match this segmentation ({np.count_nonzero(outside)} of "
+                           f"{len(points)} centerline points lie outside its lumen); rerun carotid centerlines")
+    tips = np.array([b.points[end] for b in centerlines.branches for end in (0, -1)])
+    smallest = min(float(b.radii[end]) for b in centerlines.branches for end in (0, -1))
+    lumen = levelset.array < 0
+    for axis, side in itertools.product(range(3), (0, -1)):  # the six faces of the grid
+        patches, n = ndimage.label(np.take(lumen, side, axis=axis))
+        if not n:
+            continue
+        pixel = np.prod(np.delete(levelset.spacing_kji, axis))
+        radii = np.sqrt(np.bincount(patches.ravel())[1:] * pixel / np.pi)
+        centroids = np.insert(np.array(ndimage.center_of_mass(patches > 0, patches, np.arange(1, n + 1))),
+                              axis, side % shape[axis], axis=1)
+        centres = levelset.index_to_world(centroids)
+        reach = np.linalg.norm(centres[:, None] - tips[None], axis=2).min(axis=1)
+        missed = (radii >= 0.5 * smallest) & (reach > 2.0 * radii + voxel)
+        if missed.any():
+            where = ", ".join(str(np.round(c, 1).tolist()) for c in centres[missed])
+            raise CarotidError(f"the centerlines do not match this segmentation (its lumen leaves the image at "
+                               f"{where} mm, where no centerline ends); rerun carotid centerlines")
 
 
 def build_surface_keeping_caps(surface: pv.PolyData, centerlines: Centerlines, *,
@@ -91,7 +139,7 @@ def build_surface_keeping_caps(surface: pv.PolyData, centerlines: Centerlines, *
     quality : dict
         ``surface_quality`` of the result.
     """
-    target = _size_target(centerlines, target_edge_mm, edge_radius_ratio, edge_bounds_mm)
+    target = _size_target(centerlines, target_edge_mm, edge_radius_ratio, edge_bounds_mm, flow_extension_radii)
     labelled = label_caps(surface, centerlines)
     if flow_extension_radii > 0:
         labelled = _extend_caps(labelled, flow_extension_radii)
@@ -123,18 +171,76 @@ leaves creases whose faces turn by up to 174 degrees around one vertex: the boun
 nearly flat (a 180-degree dihedral angle)."""
 
 
+MAX_TRIANGLES = 5_000_000
+"""Most triangles the remeshed surface may get: a carotid bifurcation at the default 0.3 mm edge has about 50 000;
+5 million take the remesher hours and give a volume mesh of tens of millions of elements, so edge lengths that would
+give more are refused at once, not remeshed."""
+
+
 def _size_target(centerlines: Centerlines, target_edge_mm: float | None, edge_radius_ratio: float | None,
-                 edge_bounds_mm: tuple[float, float]) -> SizeField:
+                 edge_bounds_mm: tuple[float, float], flow_extension_radii: float = 0.0) -> SizeField:
     """The remeshing target of ``build_surface``: a global edge length, at most ``RESOLVING_RATIO`` local radii
-    (not below the lower bound of ``edge_bounds_mm``), or a radius-based size field."""
+    (not below the lower bound of ``edge_bounds_mm``), or a radius-based size field.
+
+    Raises CarotidError for a non-positive edge length or ratio, and when the remeshed surface, flow extensions of
+    ``flow_extension_radii`` radii included, would have more than ``MAX_TRIANGLES`` triangles
+    (:func:`estimated_triangles`)."""
     if edge_radius_ratio is not None:
         if not edge_radius_ratio > 0:
             raise CarotidError(f"edge/radius ratio {edge_radius_ratio} must be positive")
-        return radius_size_field(centerlines, edge_radius_ratio, *edge_bounds_mm)
-    if target_edge_mm is not None and target_edge_mm > 0:
-        target = float(target_edge_mm)
-        return radius_size_field(centerlines, RESOLVING_RATIO, min(edge_bounds_mm[0], target), target)
-    raise CarotidError(f"target edge length {target_edge_mm} mm must be positive")
+        target = radius_size_field(centerlines, edge_radius_ratio, *edge_bounds_mm)
+        remedy = f"edge/radius ratio above {edge_radius_ratio:g}, edge_min_mm above {edge_bounds_mm[0]:g} mm"
+    elif target_edge_mm is not None and target_edge_mm > 0:
+        target_edge_mm = float(target_edge_mm)
+        target = radius_size_field(centerlines, RESOLVING_RATIO, min(edge_bounds_mm[0], target_edge_mm),
+                                   target_edge_mm)
+        remedy = f"--target-edge or target_edge_mm above {target_edge_mm:g} mm"
+    else:
+        raise CarotidError(f"target edge length {target_edge_mm} mm must be positive")
+    triangles, area = estimated_triangles(centerlines, target, flow_extension_radii)
+    if triangles > MAX_TRIANGLES:
+        factor = 1.05 * np.sqrt(triangles / MAX_TRIANGLES)  # 1.05: .2g rounds within 5%
+        raise CarotidError(f"these edge lengths would give the remeshed surface about {triangles:.2g} triangles "
+                           f"(a wall of about {area:.3g} mm^2), over the {MAX_TRIANGLES:.0e} limit: use edges "
+                           f"{factor:.2g} times as long ({remedy})")
+    return target
+
+
+def estimated_triangles(centerlines: Centerlines, target: SizeField, flow_extension_radii: float = 0.0
+                        ) -> tuple[float, float]:
+    """Triangle count of a wall remeshed to ``target``, from its centerlines.
+
+    Each branch is taken as a tube of its inscribed radius r (wall 2 pi r per mm of axis), each end extended by
+    ``flow_extension_radii`` r, and each triangle as equilateral with the local target edge h (area
+    sqrt(3)/4 h^2, about 0.433 h^2).
+
+    Parameters
+    ----------
+    centerlines : Centerlines
+        Axis points (mm) and radii (mm) of the lumen.
+    target : float or callable
+        Target edge length, mm (see :func:`carotid.surface.remesh.remesh`).
+    flow_extension_radii : float
+        Length of the flow extension at every end, in end radii.
+
+    Returns
+    -------
+    triangles : float
+        Estimated triangle count.
+    area : float
+        Estimated wall area, mm^2.
+    """
+    points = [b.points for b in centerlines.branches]
+    radii = np.concatenate([b.radii for b in centerlines.branches])
+    segments = [np.linalg.norm(np.diff(p, axis=0), axis=1) for p in points]
+    lengths = np.concatenate([np.r_[s, 0.0] / 2 + np.r_[0.0, s] / 2 for s in segments])  # axis length per point, mm
+    ends = centerlines.ends()
+    end_points = np.array([point for _, point, _, _ in ends])
+    end_radii = np.array([radius for _, _, _, radius in ends])
+    areas = 2.0 * np.pi * np.r_[radii * lengths, end_radii * flow_extension_radii * end_radii]
+    where = np.vstack([*points, end_points])
+    edges = target(where) if callable(target) else np.full(len(where), float(target))
+    return float(np.sum(areas / (np.sqrt(3.0) / 4.0 * edges**2))), float(areas.sum())
 
 
 def _finish(surface: pv.PolyData, names: list[str], target: SizeField, iterations: int
@@ -189,5 +295,6 @@ def read_levelset_and_centerlines(case_dir: str | Path) -> tuple[Volume, Centerl
         raise CarotidError(f"{cl_path} not found: run `carotid centerlines {case_dir}` first")
     from carotid.centerline import read_centerlines
 
-    return read_image(ls_path), read_centerlines(cl_path)
+    centerlines = read_centerlines(cl_path)  # the small file first: a junk one is refused before the image is read
+    return read_image(ls_path), centerlines
 
