@@ -28,14 +28,15 @@ from typing import Callable
 
 import numpy as np
 
+from carotid.centerline.plaque import CALCIFIED_MM, calcified
 from carotid.config import Config
 from carotid.errors import CarotidError, check_ranges
 from carotid.flow.duplex import check_doppler
 from carotid.flow.indices import HIGH_OSI, LOW_TAWSS_PA, area_fraction, node_areas
 from carotid.flow.regions import INDEX_UNITS, REGION_INDICES, REGION_NAMES
 from carotid.io import atomic_path, read_json, write_json
+from carotid.io.vtkfile import read_vtk
 from carotid.pipeline import PROGRESS_SECONDS, STAGES, format_duration, read_case, run_stage
-from carotid.centerline.plaque import CALCIFIED_MM, calcified
 from carotid.report.checks import quality_checks, stenosis_category
 from carotid.segment.intensity import VALIDATED_CONTRAST_TO_NOISE
 
@@ -273,9 +274,10 @@ def _wall_area_fractions(path: Path) -> tuple:
     ``LOW_TAWSS_PA``; ``("", "")`` when the flow stage has not run."""
     if not path.exists():
         return "", ""
-    import pyvista as pv
-
-    wall = pv.read(path)
+    try:
+        wall = read_vtk(path, "wall indices")
+    except CarotidError:  # a cohort row keeps its other columns; the report names the file
+        return "", ""
     areas = node_areas(wall.points, wall.triangulate().faces.reshape(-1, 4)[:, 1:])
     osi, tawss = np.asarray(wall["OSI"]), np.asarray(wall["TAWSS"])
     return area_fraction(osi, areas, HIGH_OSI), area_fraction(-tawss, areas, -LOW_TAWSS_PA)  # -TAWSS above

@@ -125,8 +125,11 @@ def cmd_segment(args) -> int:
     print(f"segmentation written to {out}: lumen {rep['lumen_volume_mm3']:.0f} mm^3, {wall}"
           f"{sum(rep['iterations'])} iterations, {state}, {rep['seconds']['total_s']:.1f} s")
     quality = rep["intensity"]
-    if quality.get("contrast_to_noise") is not None and (
-            quality["contrast_to_noise"] < quality["contrast_to_noise_validated"]):
+    if quality.get("contrast_to_noise") is None:
+        print("warning: the lumen's contrast-to-noise ratio could not be measured (its core, two blur widths inside "
+              "the wall, holds under 100 voxels): the region segmented may not be a vessel's lumen; check the seeds "
+              "or the initial region")
+    elif quality["contrast_to_noise"] < quality["contrast_to_noise_validated"]:
         print(f"warning: the lumen's contrast-to-noise ratio is {quality['contrast_to_noise']:.1f} (contrast "
               f"{quality['contrast']:.4g}, noise {quality['noise']:.3g}), below "
               f"{quality['contrast_to_noise_validated']:g}, the lowest the segmentation's accuracy was measured at: "

@@ -313,13 +313,13 @@ def run_surface(case_dir: Path, params: dict, inputs: list[Path]) -> None:
 
 def run_mesh(case_dir: Path, params: dict, inputs: list[Path]) -> None:
     """The ``mesh`` stage: ``surface.vtp`` -> ``mesh.vtu`` (+ .msh, XDMF), ``mesh_quality.json``."""
-    import pyvista as pv
-
+    from carotid.io.vtkfile import read_vtk
     from carotid.mesh.io import write_mesh
     from carotid.mesh.mesher import build_mesh
 
     p = MeshStageParameters(**params).validate()
-    mesh, quality = build_mesh(pv.read(case_dir / "surface.vtp"), layers=p.layers, ratio=p.ratio,
+    surface = read_vtk(case_dir / "surface.vtp", "surface", remedy="rerun the surface stage")
+    mesh, quality = build_mesh(surface, layers=p.layers, ratio=p.ratio,
                                thickness=p.thickness_mm or None, thickness_ratio=p.thickness_ratio,
                                size=p.size_mm or None, core=p.core, lloyd_iterations=p.lloyd_iterations)
     write_mesh(mesh, case_dir, quality)

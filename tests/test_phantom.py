@@ -9,7 +9,7 @@ import pytest
 from scipy import ndimage
 
 from carotid.cli import main
-from carotid.errors import CarotidError
+from carotid.errors import CarotidError, CarotidWarning
 from carotid.phantom import FAMILY_RANGES, LABELS, make_phantom, sample_family, write_phantom
 from carotid.phantom.geometry import tube_sdf, union_of_spheres_sdf
 from conftest import phantom
@@ -127,6 +127,12 @@ def test_bad_parameters_are_refused():
     for kwargs in bad:
         with pytest.raises(CarotidError):
             make_phantom(**kwargs)
+    with pytest.raises(CarotidError, match="outside"):
+        make_phantom(noise=1e9)  # saturated int16 before the bound
+    with pytest.warns(CarotidWarning, match="does not hold the phantom's CCA seed, ICA seed, ECA seed, bifurcation"):
+        make_phantom(extent=(2, 2, 2), spacing=(0.5, 0.5, 0.5))
+    with pytest.warns(CarotidWarning, match="does not hold the phantom's ICA seed, ECA seed, ICA stenosis"):
+        make_phantom(extent=(20, 20, 30), spacing=(0.6, 0.6, 0.8), seed=1)
 
 
 def _digest(array):
@@ -441,9 +447,9 @@ def test_cli_phantom(tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert err.startswith("carotid: error:") and "\n" not in err and "Traceback" not in err
         assert not (tmp_path / "bad").exists()
-    with pytest.raises(SystemExit) as stop:
-        main(["phantom", str(tmp_path / "bad"), "--nascet", "0.5", "--area-stenosis", "0.5"])
-    assert stop.value.code == 2
+    assert main(["phantom", str(tmp_path / "bad"), "--nascet", "0.5", "--area-stenosis", "0.5"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("carotid: error:") and "\n" not in err  # a usage error: one line, not the usage block
 
 
 def test_written_files(tmp_path):

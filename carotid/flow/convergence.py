@@ -374,12 +374,11 @@ def run_convergence(case_dir, params, refinement: float = 1.5, time_levels: bool
     from dataclasses import replace
     from pathlib import Path
 
-    import pyvista as pv
-
     from carotid.centerline import read_centerlines
     from carotid.centerline.model import branch_regions
     from carotid.flow.output import write_wall_vtp
     from carotid.io import write_json
+    from carotid.io.vtkfile import read_vtk
     from carotid.mesh.io import write_mesh
     from carotid.mesh.boundary import check_surface
     from carotid.mesh.mesher import build_mesh, median_edge
@@ -394,7 +393,7 @@ def run_convergence(case_dir, params, refinement: float = 1.5, time_levels: bool
     for name in ("surface.vtp", "mesh.vtu", "mesh_quality.json", "centerlines.vtp"):
         if not (case_dir / name).is_file():
             raise CarotidError(f"the convergence study needs {case_dir / name}: run the earlier stages first")
-    surface = pv.read(case_dir / "surface.vtp")
+    surface = read_vtk(case_dir / "surface.vtp", "surface", remedy="rerun `carotid surface`")
     case_quality = json.loads((case_dir / "mesh_quality.json").read_text())
     recorded = case_quality["parameters"]
     branches = read_centerlines(case_dir / "centerlines.vtp").branches
@@ -449,7 +448,7 @@ def run_convergence(case_dir, params, refinement: float = 1.5, time_levels: bool
         path = out / name / "flow" / "indices.vtp"
         if not path.is_file():
             raise CarotidError(f"{name} wrote no wall indices (under two outputs): run longer or output more often")
-        walls[name] = pv.read(path)
+        walls[name] = read_vtk(path, "wall indices")
     means = {name: _branch_means(w, branch_regions(np.asarray(w.points), branches), len(branches))
              for name, w in walls.items()}  # each (Q, B + 1)
     fine = walls["level0"]

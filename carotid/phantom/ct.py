@@ -44,6 +44,7 @@ muscle and 1200-2500 in the lumen in contrast-enhanced MRA, 40-200 and 400-1000 
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -51,7 +52,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from carotid.errors import CarotidError
+from carotid.errors import CarotidError, CarotidWarning
 from carotid.io import Volume, atomic_dir, write_image, write_json
 from carotid.phantom.geometry import (STEP, Branch, bias_field, coil_tangents, cylinder_sdf, ellipsoid_sdf, frame,
                                       integrate_tangents, kink_tangents, perpendicular, raised_cosine,
@@ -64,6 +65,7 @@ CORTICAL_HU = 1000.0
 MARROW_HU = 280.0
 CALCIUM_HU = 1000.0            # the legacy plaque
 MAX_STENOSIS = 0.95            # largest area reduction
+MAX_NOISE = 500.0              # noise SD, image units: 12 times the noisiest CTA's; beyond it int16 saturates
 ICA_SHAPES = ("smooth", "kink", "loop")
 MODALITIES = ("ct", "mr", "tof")
 MAGNITUDE = ("mr", "tof")      # magnitude images: bias field, Rician noise, calcium a signal void
@@ -646,7 +648,7 @@ def make_phantom(stenosis: float | None = None, noise: float | None = None, seed
     bias_v = _number("bias", bias, 0.0, 1.0, high_open=True)
     if bias_v and not mr:
         raise CarotidError("bias (a multiplicative MR intensity field) must be 0 in CT")
-    noise_v = _number("noise", noise, 0.0)
+    noise_v = _number("noise", noise, 0.0, MAX_NOISE)
     if noise_v is None and not mr:
         noise_v = 20.0
     shape = tuple(int(round(e / s)) for e, s in zip(extent[::-1], spacing[::-1]))
@@ -888,6 +890,13 @@ def make_phantom(stenosis: float | None = None, noise: float | None = None, seed
                                "arterial_distal": levels["arterial_distal"], "venous": levels["venous"],
                                "tissue": levels["tissue"], "calcium": levels["calcium"],
                                "cortical_bone": levels["cortical_bone"]}
+    fov = f"a field of view of {extent[0]:g} x {extent[1]:g} x {extent[2]:g} mm"
+    landmarks = {**{f"{name} seed": xyz for name, xyz in seeds.items()}, "bifurcation": desc["bifurcation_mm"],
+                 "ICA stenosis": desc["stenosis"]["location_mm"]}
+    outside = [name for name, xyz in landmarks.items() if not grid.contains(np.asarray(xyz, float))]
+    if outside:
+        warnings.warn(f"{fov} does not hold the phantom's {', '.join(outside)}: the image does not show "
+                      f"{'them' if len(outside) > 1 else 'it'}", CarotidWarning, stacklevel=2)
     return Phantom(image=grid.with_array(image),
                    mask=grid.with_array((labels == LABELS["lumen"]).astype(np.uint8)),
                    sdf=grid.with_array(np.clip(lumen, -10, 10).reshape(shape).astype(np.float32)),
