@@ -13,7 +13,7 @@ import pyvista as pv
 
 from conftest import FLUID_STL, needs_fluid_stl
 
-from carotid.errors import CarotidError
+from carotid.errors import CarotidError, CarotidWarning
 from carotid.mesh import build_mesh, cap_open_ends, check_surface, label_flat_caps, write_mesh
 from carotid.mesh.boundary import LABELS, cap_planes
 from carotid.mesh.command import register
@@ -360,6 +360,22 @@ def test_cap_open_ends_and_flat_cap_detection_restore_the_volume(tube):
     np.testing.assert_array_equal(np.bincount(relabelled.labels), np.bincount(closed.labels))
     with pytest.raises(CarotidError, match="flat end caps"):
         label_flat_caps(pv.Sphere(radius=3.0))
+
+
+def test_a_small_open_end_is_capped_with_a_warning_that_it_may_be_a_hole(tube):
+    """Two triangles taken out of the wall leave a loop of about 2 mm beside ends of 2 pi R: capped as an
+    outlet all the same (a cut small branch looks alike), with a warning; the tube's own two ends give none."""
+    wall = tube.extract_cells(np.asarray(tube.cell_data[LABELS]) == 1).extract_surface(algorithm="dataset_surface")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        cap_open_ends(wall)
+    centres = wall.cell_centers().points
+    middle = np.argsort(np.abs(centres[:, 2] - 6.0))[:1]
+    neighbour = np.flatnonzero(np.isin(wall.regular_faces, wall.regular_faces[middle]).sum(axis=1) == 2)[:1]
+    holed = wall.remove_cells(np.r_[middle, neighbour]).extract_surface(algorithm="dataset_surface")
+    with pytest.warns(CarotidWarning, match=r"1 open end\(s\) of perimeter .* capped as outlets"):
+        capped = cap_open_ends(holed)
+    assert sorted(np.unique(capped.cell_data[LABELS])) == [1, 2, 3, 4]
 
 
 def test_write_mesh_outputs(tmp_path, tube_mesh):

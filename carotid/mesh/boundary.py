@@ -9,6 +9,7 @@ labels ``CellEntityIds``: wall 1, inlet 2, outlets 3, 4, ...; every cap
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,10 +19,14 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import Delaunay, cKDTree
 from skimage.measure import points_in_poly
 
-from carotid.errors import CarotidError
+from carotid.errors import CarotidError, CarotidWarning
 
 WALL, INLET = 1, 2
 LABELS = "CellEntityIds"
+HOLE_PERIMETER = 0.15
+"""An open end whose perimeter is under this fraction of the largest end's is more likely a hole in the wall than a
+vessel's cut end (a carotid's smallest branches, 1 mm across beside a 7 mm CCA, have 0.15 of its perimeter):
+it is still capped, with a warning."""
 
 
 @dataclass(frozen=True)
@@ -248,7 +253,8 @@ def cap_open_ends(poly: pv.PolyData) -> pv.PolyData:
 
     The existing faces become wall (1); the loop with the largest perimeter
     (the common carotid inlet) is labelled 2 and the others 3, 4, ... by
-    decreasing perimeter.
+    decreasing perimeter.  A loop under ``HOLE_PERIMETER`` of the largest
+    one's perimeter is capped too, with a CarotidWarning: it may be a hole.
 
     Parameters
     ----------
@@ -266,6 +272,11 @@ def cap_open_ends(poly: pv.PolyData) -> pv.PolyData:
     triangles = poly.regular_faces.astype(np.int64)
     boundary, loop, n_loops = _boundary_loops(triangles)
     lengths = np.bincount(loop, weights=np.linalg.norm(points[boundary[:, 0]] - points[boundary[:, 1]], axis=1))
+    small = np.sort(lengths[lengths < HOLE_PERIMETER * lengths.max()])
+    if small.size:
+        warnings.warn(f"{small.size} open end(s) of perimeter {', '.join(f'{x:.2g}' for x in small)} mm, under "
+                      f"{HOLE_PERIMETER:g} of the largest end's ({lengths.max():.3g} mm), capped as outlets: if they "
+                      "are holes in the wall, close them first", CarotidWarning, stacklevel=2)
     faces, labels = [triangles], [np.full(len(triangles), WALL)]
     for rank, index in enumerate(np.argsort(-lengths)):
         new_points, tri = triangulate_loop(points, boundary[loop == index])
