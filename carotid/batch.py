@@ -453,23 +453,28 @@ def run_batch(manifest: str | Path, out_dir: str | Path, *, scheduler: str | Non
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     # Dask's own logs (a retried task's traceback, a closed stream at shutdown) would bury the progress lines:
-    # every failure is in the case's line and in cohort.csv.
-    logging.getLogger("distributed").setLevel(logging.CRITICAL)
-    cluster = None if scheduler else LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                                  dashboard_address=None, silence_logs=logging.CRITICAL)
-    with Client(scheduler or cluster) as client:
-        finals, tasks = {}, []
-        for case in cases:
-            previous = None
-            for name in STAGE_NAMES:
-                previous = client.submit(_stage_task, case, str(out_dir / case.case_id), name, previous,
-                                         key=f"{case.case_id}/{name}", retries=retries, pure=False)
-                tasks.append(previous)
-            finals[case.case_id] = previous
-        log(f"batch: {len(cases)} cases, {len(tasks)} stage tasks")
-        outcomes = _watch(client, finals, tasks, log, PROGRESS_SECONDS)
-        rows = [case_summary(case, out_dir / case.case_id, outcomes[case.case_id]) for case in cases]
-    if cluster is not None:
-        cluster.close()
+    # every failure is in the case's line and in cohort.csv.  The caller's logging is restored afterwards.
+    dask_log = logging.getLogger("distributed")
+    level = dask_log.level
+    dask_log.setLevel(logging.CRITICAL)
+    try:
+        cluster = None if scheduler else LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                                      dashboard_address=None, silence_logs=logging.CRITICAL)
+        with Client(scheduler or cluster) as client:
+            finals, tasks = {}, []
+            for case in cases:
+                previous = None
+                for name in STAGE_NAMES:
+                    previous = client.submit(_stage_task, case, str(out_dir / case.case_id), name, previous,
+                                             key=f"{case.case_id}/{name}", retries=retries, pure=False)
+                    tasks.append(previous)
+                finals[case.case_id] = previous
+            log(f"batch: {len(cases)} cases, {len(tasks)} stage tasks")
+            outcomes = _watch(client, finals, tasks, log, PROGRESS_SECONDS)
+            rows = [case_summary(case, out_dir / case.case_id, outcomes[case.case_id]) for case in cases]
+        if cluster is not None:
+            cluster.close()
+    finally:
+        dask_log.setLevel(level)
     write_cohort(rows, out_dir / "cohort.csv")
     return rows

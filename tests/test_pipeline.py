@@ -55,6 +55,7 @@ def test_config_defaults_overrides_and_toml_round_trip(tmp_path):
     ({"segment": {"alpha": 1.5}}, "alpha must lie in"),
     ({"segment": {"seeds_mm": [[1.0, 2.0]]}}, "[x, y, z]"),
     ({"segment": {"seeds_mm": [[float("nan"), 0.0, 10.0]]}}, "finite numbers"),
+    ({"segment": {"seeds_mm": [["a", "b", "c"]]}}, "finite numbers"),
     ({"segment": {"kernel_radius_mm": float("inf")}}, "kernel_radius_mm must be a finite number"),
     ({"segment": {"kernel_radius_mm": 1e6}}, "kernel_radius_mm must lie in"),
     ({"segment": {"window": [0.0, float("nan")]}}, "window must be a finite number"),

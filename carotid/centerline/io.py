@@ -18,8 +18,8 @@ import pyvista as pv
 
 from carotid.centerline.model import Branch, Centerlines
 from carotid.errors import CarotidError
-from carotid.io import atomic_path, write_json
-from carotid.io.vtkfile import read_record, read_vtk
+from carotid.io import atomic_path, read_record, write_json
+from carotid.io.vtkfile import read_vtk
 
 VTP_NAME = "centerlines.vtp"
 JSON_NAME = "geometry.json"

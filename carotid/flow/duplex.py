@@ -276,8 +276,7 @@ def case_probes(case_dir, mesh, user=()) -> tuple[ProbeSet, dict]:
         ``MATCHING_FRACTION`` of their points inside the mesh are another's: no gates nor centreline probes.
         When the case has centerlines but gets no gates, a CarotidWarning gives the reason.
     """
-    from carotid.centerline import geometry_features
-    from carotid.centerline import read_centerlines
+    from carotid.centerline import geometry_features, read_centerlines
 
     locator = PointLocator(mesh.points, mesh.tets)
     specs = [ProbeSpec(str(name), np.asarray(xyz, dtype=float), 0.0, "user") for name, xyz in user]

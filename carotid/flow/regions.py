@@ -192,8 +192,7 @@ def case_regions(case_dir, points: np.ndarray, triangles: np.ndarray, indices: d
         ``statistics``: :func:`region_statistics` over the nodes) and ``bifurcation_geometry``
         (:func:`carotid.centerline.features.bifurcation_geometry`); empty without centerlines.
     """
-    from carotid.centerline import geometry_features
-    from carotid.centerline import read_centerlines
+    from carotid.centerline import geometry_features, read_centerlines
 
     path = Path(case_dir) / "centerlines.vtp"
     if not path.exists():

@@ -18,6 +18,8 @@ import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 
+from carotid.errors import CarotidError
+
 RANDOM_PART = "[a-z0-9_]{8}"  # the part of a temporary's name that tempfile draws
 
 
@@ -69,6 +71,32 @@ def read_json(path: str | os.PathLike) -> dict:
         return json.loads(Path(path).read_text())
     except (OSError, ValueError):
         return {}
+
+
+def read_record(path: str | Path, remedy: str) -> dict | None:
+    """A JSON record (an object), or None when the file does not exist.
+
+    Parameters
+    ----------
+    path : path-like
+    remedy : str
+        What to do about a record that cannot be read ("rerun `carotid centerlines`").
+
+    Raises
+    ------
+    CarotidError
+        ``<path>: not valid JSON (...); <remedy>``, or ``not a JSON object`` for valid JSON of another type.
+    """
+    path = Path(path)
+    if not path.exists():
+        return None
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise CarotidError(f"{path}: not valid JSON ({exc}); {remedy}") from None
+    if not isinstance(data, dict):
+        raise CarotidError(f"{path}: not a JSON object (it holds {json.dumps(data)[:40]}); {remedy}")
+    return data
 
 
 def write_json(data, path: str | os.PathLike) -> Path:

@@ -1,15 +1,14 @@
-"""Reading the case's files quietly, with one clear message when a file exists but cannot be read.
+"""Reading the case's VTK files quietly, with one clear message when a file exists but cannot be read.
 
 VTK reports a corrupt file by printing its own error dump on stderr (its error text, the failed pipeline
 request and pyvista's warning, 20-odd lines) and returning an empty dataset; :func:`read_vtk` keeps that dump
 quiet and turns the first error VTK reported, an empty result or non-finite coordinates into a
-:class:`carotid.errors.CarotidError` naming the file.  :func:`read_record` tells a JSON record that is missing
-(None: its stage has not run) from one that is there but is not a JSON object.
+:class:`carotid.errors.CarotidError` naming the file.  Its twin for JSON records is
+:func:`carotid.io.atomic.read_record`.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import warnings
 from contextlib import contextmanager
@@ -91,30 +90,4 @@ def read_vtk(path: str | Path, kind: str, suffixes: tuple[str, ...] | None = Non
         raise CarotidError(f"{path}: not a readable {kind} file ({reason}){tail}")
     if not np.isfinite(np.asarray(data.points, float)).all():
         raise CarotidError(f"{path}: non-finite coordinates (NaN or infinity) in the {kind} file{tail}")
-    return data
-
-
-def read_record(path: str | Path, remedy: str) -> dict | None:
-    """A JSON record (an object), or None when the file does not exist.
-
-    Parameters
-    ----------
-    path : path-like
-    remedy : str
-        What to do about a record that cannot be read ("rerun `carotid centerlines`").
-
-    Raises
-    ------
-    CarotidError
-        ``<path>: not valid JSON (...); <remedy>``, or ``not a JSON object`` for valid JSON of another type.
-    """
-    path = Path(path)
-    if not path.exists():
-        return None
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
-        raise CarotidError(f"{path}: not valid JSON ({exc}); {remedy}") from None
-    if not isinstance(data, dict):
-        raise CarotidError(f"{path}: not a JSON object (it holds {json.dumps(data)[:40]}); {remedy}")
     return data

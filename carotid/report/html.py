@@ -24,16 +24,16 @@ from pathlib import Path
 import numpy as np
 
 from carotid import __version__
+from carotid.centerline import read_centerlines
 from carotid.centerline.features import (BULB_EXCESS, BULB_WINDOW, CCA_WINDOW, DAUGHTER_START, DIRECTION_WINDOW,
                                         geometry_features)
 from carotid.centerline.plaque import calcified
+from carotid.errors import CarotidError, CarotidWarning
 from carotid.flow.convergence import STATUS
 from carotid.flow.indices import HIGH_OSI, LOW_TAWSS_PA, node_areas
-from carotid.centerline import read_centerlines
-from carotid.io.vtkfile import read_record, read_vtk
 from carotid.flow.regions import INDEX_UNITS, REGION_INDICES, REGION_NAMES, region_statistics, wall_regions
-from carotid.errors import CarotidError, CarotidWarning
-from carotid.io import atomic_path, read_image
+from carotid.io import atomic_path, read_image, read_record
+from carotid.io.vtkfile import read_vtk
 from carotid.report import figures
 from carotid.report.checks import Check, quality_checks, stale_warnings, stenosis_category
 
@@ -512,8 +512,8 @@ def summary_html(case: Case) -> str:
             maps.append(_figure(f"{label}: colour scale {clip}", figures.wall_map(wall, name, label, clim, cmap)))
         parts.append(f'<div class="maps" id="wss-maps">{"".join(maps)}</div>')
     else:
-        parts.append(f'<p class="missing">{html.escape(case.absent("flow", "flow/indices.vtp", "flow/summary.json")[:-1])}: no wall shear '
-                     'stress maps.</p>')
+        reason = case.absent("flow", "flow/indices.vtp", "flow/summary.json")[:-1]
+        parts.append(f'<p class="missing">{html.escape(reason)}: no wall shear stress maps.</p>')
     if case.flow:
         parts.append(convergence_html(case))
 

@@ -311,7 +311,7 @@ class SegmentParameters:
             (self.handle_mm >= 0, "handle_mm must not be negative"),
             (self.deblur_iterations >= 0 and self.deblur_gain > 0 and self.deblur_smooth_mm >= 0,
              "deblur_iterations and deblur_smooth_mm must not be negative, deblur_gain must be positive"),
-            (np.isfinite(self.slice_thickness_mm) and self.slice_thickness_mm >= 0,
+            (self.slice_thickness_mm >= 0,
              "slice_thickness_mm must be a number >= 0 (0: the scan's own)"),
             (self.wall_hu_low < self.wall_contrast_hu and (
                 self.wall_hu_high == 0 or self.wall_hu_low < self.wall_hu_high < self.wall_contrast_hu),
@@ -881,8 +881,9 @@ class SegmentStageParameters(SegmentParameters):
     def validate(self) -> "SegmentStageParameters":
         """Raise CarotidError for bad values, seeds and stop points included."""
         points = [*self.seeds_mm, *self.stops_mm]
-        if any(not isinstance(point, list) or len(point) != 3 for point in points) or not np.all(
-                np.isfinite(np.asarray(points, float))):
+        if any(not isinstance(point, list) or len(point) != 3 or not all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in point)
+               for point in points):
             raise CarotidError("bad segmentation parameter: each seed and stop point must be [x, y, z] in mm, "
                                "finite numbers")
         super().validate()
