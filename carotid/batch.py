@@ -151,6 +151,10 @@ COHORT_COLUMNS = {
     "stenosis_calcified": ("", f"True when that calcium lies within {CALCIFIED_MM:g} mm of the lumen: the grade is "
                                "less certain"),
     "mesh_tetrahedra": ("count", "tetrahedra of the volume mesh"),
+    "outlets": ("", "outlet model the flow ran with: murray or split (prescribed), resistance or rcr (lumped)"),
+    "outlets_fallback": ("", "the configured prescribed split (murray or split) when it blew up and the flow was "
+                             "rerun with RCR outlets calibrated for that split (simulate blow_up_fallback); empty "
+                             "otherwise"),
     "checks_failed": ("count", "quality checks of the stages run that failed (the report's checks)"),
     "failed_checks": ("", "those checks, 'stage: quantity', separated by '; '"),
     "tawss_mean_pa": ("Pa", "time-averaged wall shear stress over the last cycle (or the part of it run: "
@@ -322,6 +326,8 @@ def case_summary(case: Case, case_dir: Path, outcome: dict) -> dict:
         "stenosis_calcium_mm": _cell_value(stenosis.get("calcium_mm")),
         "stenosis_calcified": calcified(stenosis) if stenosis else "",
         "mesh_tetrahedra": mesh.get("elements", {}).get("tetrahedra", ""),
+        "outlets": _lookup(flow, "outlets", "model"),
+        "outlets_fallback": _lookup(flow, "outlets", "fallback", "from"),
         "checks_failed": len(failed), "failed_checks": "; ".join(failed),
         "tawss_mean_pa": flow.get("indices", {}).get("TAWSS", {}).get("mean", ""),
         "indices_cycle_fraction": flow.get("indices_cycle_fraction", ""),

@@ -126,6 +126,12 @@ class MeshStageParameters:
         return self
 
 
+BLOW_UP_FALLBACKS = ("rcr", "none")
+# Written in flow/ when the stage falls back to RCR outlets: the section it ran for and why, so that an
+# interrupted fallback resumes as a fallback instead of blowing up again under the prescribed split.
+FALLBACK_FILE = "outlets_fallback.json"
+
+
 @dataclass
 class FlowStageParameters:
     """The ``[simulate]`` section (SI units).
@@ -191,6 +197,10 @@ class FlowStageParameters:
     doppler_cca_psv, doppler_cca_edv : float
         Measured CCA peak systolic and end-diastolic velocity, cm/s: the inflow is scaled and shaped so that the
         inlet's Womersley centreline velocity matches them (0 PSV: the waveform as it is).
+    blow_up_fallback : str
+        What the stage does when the flow blows up under a prescribed split (``outlets`` "murray" or "split"):
+        "rcr" reruns it from t = 0 with RCR outlets calibrated for the same split as the mean share
+        (:func:`run_simulate`), "none" stops the case.
     """
 
     cycles: float = 3.0
@@ -220,6 +230,7 @@ class FlowStageParameters:
     probes_file: str = ""
     doppler_cca_psv: float = 0.0
     doppler_cca_edv: float = 0.0
+    blow_up_fallback: str = "rcr"
 
     # Blood and the analogue fluids of flow phantoms (water to glycerol mixtures).
     RANGES = {"cycles": (1e-3, 100.0), "dt": (0.0, 0.01), "output_every": (1, 10**7), "checkpoint_every": (1, 10**7),
@@ -243,8 +254,8 @@ class FlowStageParameters:
         probes = [(f"probe{k + 1}", tuple(float(v) for v in xyz)) for k, xyz in enumerate(self.probes)]
         if self.probes_file:
             probes += read_probe_csv(self.probes_file, start=len(probes) + 1)
-        fields = {k: v for k, v in asdict(self).items()
-                  if k not in ("flow_ml_s", "probes_file", "doppler_cca_psv", "doppler_cca_edv")}
+        stage_only = ("flow_ml_s", "probes_file", "doppler_cca_psv", "doppler_cca_edv", "blow_up_fallback")
+        fields = {k: v for k, v in asdict(self).items() if k not in stage_only}
         fields.update(probes=tuple(probes),
                       doppler_cca=(self.doppler_cca_psv, self.doppler_cca_edv) if self.doppler_cca_psv else None)
         fields.update(dt=self.dt or None, waveform=waveform, split=tuple(self.split) or None,
@@ -262,6 +273,9 @@ class FlowStageParameters:
             raise CarotidError(f"bad simulate parameter: flow_ml_s = {self.flow_ml_s:g} is below "
                                f"{MIN_MEAN_FLOW_ML:g} mL/s (a carotid carries 2-20 mL/s; the adaptive time step "
                                "would span the whole cycle)")
+        if self.blow_up_fallback not in BLOW_UP_FALLBACKS:
+            raise CarotidError(f"bad simulate parameter: blow_up_fallback must be one of "
+                               f"{', '.join(BLOW_UP_FALLBACKS)} (got {self.blow_up_fallback!r})")
         if self.split and self.outlets == "murray":
             raise CarotidError("bad simulate parameter: split (--split) needs outlets (--outlets) split, resistance "
                                "or rcr; murray shares the flow by Murray's law instead")
@@ -325,11 +339,31 @@ def run_mesh(case_dir: Path, params: dict, inputs: list[Path]) -> None:
     write_mesh(mesh, case_dir, quality)
 
 
+def _started_fallback(marker: Path, params: dict) -> dict | None:
+    """The fallback record of ``marker`` (``flow/outlets_fallback.json``) when it was written for the same
+    ``[simulate]`` section, else None (also for a marker that cannot be read)."""
+    import json
+
+    from carotid.io import read_json
+
+    record = read_json(marker)
+    same = isinstance(record, dict) and record.get("params") == json.loads(json.dumps(params))
+    return record.get("fallback") if same else None
+
+
 def run_simulate(case_dir: Path, params: dict, inputs: list[Path], progress=None) -> None:
     """The ``simulate`` stage: ``mesh.vtu`` -> ``flow/``.
 
     The run continues from ``flow/checkpoint.npz`` when that was made with the same mesh and solution
     settings (:meth:`carotid.flow.simulate.FlowParameters.fingerprint`), else it starts at t = 0.
+
+    A prescribed split (Murray's law or ``split``) forces each outlet's share through the lumen at whatever
+    pressure it takes, and behind a tight stenosis the run can blow up however small the step.  With
+    ``blow_up_fallback = "rcr"`` the stage then warns and reruns from t = 0 with RCR outlets calibrated for
+    the same split as the mean share, as a SimVascular user would by hand: the flow redistributes under a
+    physiological outlet pressure instead.  ``flow/summary.json`` records it under ``outlets.fallback`` (the
+    configured model and the blow-up's message), and ``flow/outlets_fallback.json`` lets an interrupted
+    fallback resume as one.
 
     Parameters
     ----------
@@ -342,13 +376,40 @@ def run_simulate(case_dir: Path, params: dict, inputs: list[Path], progress=None
         Receives after every step the simulated time as a fraction of the run's end time, with the cycle,
         the time (s), the CFL number and the mass imbalance (%), and the solver's estimate of the run as a line.
     """
-    from carotid.flow.simulate import simulate
+    import warnings
+    from dataclasses import replace
 
-    flow = FlowStageParameters(**params).validate().flow_parameters()
+    from carotid.errors import CarotidWarning
+    from carotid.flow.simulate import FlowBlowUp, simulate
+    from carotid.io import write_json
+
+    stage = FlowStageParameters(**params).validate()
+    flow = stage.flow_parameters()
+    marker = case_dir / "flow" / FALLBACK_FILE
 
     def report(info: dict) -> None:
         progress(info["time"] / info["end"], 1.0, cycle=f"{info['cycle']:.3f}", t=f"{info['time']:.4f}s",
                  CFL=f"{info['cfl']:.2f}", imbalance=f"{100 * info['imbalance']:+.3f}%")
 
-    simulate(inputs[0], case_dir, flow, resume="auto", progress=None if progress is None else report,
-             log=None if progress is None else progress.write)
+    def run(parameters) -> dict:
+        return simulate(inputs[0], case_dir, parameters, resume="auto", progress=None if progress is None else report,
+                        log=None if progress is None else progress.write)
+
+    fallback = _started_fallback(marker, params) if stage.blow_up_fallback == "rcr" else None
+    marker.unlink(missing_ok=True)
+    if fallback is None:
+        try:
+            run(flow)
+            return
+        except FlowBlowUp as exc:
+            if stage.blow_up_fallback != "rcr" or flow.outlets not in ("murray", "split"):
+                raise
+            fallback = {"from": flow.outlets, "reason": str(exc)}
+            warnings.warn(f"the flow blew up under the prescribed split ({flow.outlets}) at t = {exc.time_s:.4f} s: "
+                          "rerunning from t = 0 with RCR outlets calibrated for the same split", CarotidWarning,
+                          stacklevel=2)
+    marker.parent.mkdir(parents=True, exist_ok=True)
+    write_json({"params": params, "fallback": fallback}, marker)
+    summary = run(replace(flow, outlets="rcr"))
+    summary["outlets"]["fallback"] = fallback
+    write_json(summary, case_dir / "flow" / "summary.json")

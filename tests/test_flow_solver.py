@@ -388,6 +388,76 @@ def test_blow_up_is_detected(tmp_path):
     assert (tmp_path / "flow" / "checkpoint.npz").is_file()
 
 
+def _blowing_up_under(monkeypatch, calls, models=("murray", "split")):
+    """``simulate`` as the flow stage calls it, except that it blows up at once under the outlet ``models``;
+    ``calls`` receives the outlet model of every call."""
+    import carotid.flow.simulate as sim
+
+    real = sim.simulate
+
+    def simulate(mesh, case_dir, params, **kwargs):
+        calls.append(params.outlets)
+        if params.outlets in models:
+            raise sim.FlowBlowUp("the flow solution blew up at step 3 (t = 0.00300 s): |u| = 12 m/s", 0.003)
+        return real(mesh, case_dir, params, **kwargs)
+
+    monkeypatch.setattr(sim, "simulate", simulate)
+
+
+def test_the_stage_reruns_a_blown_up_split_with_rcr_outlets_and_says_so(tmp_path, monkeypatch):
+    """Under ``carotid run`` a blow-up under the prescribed split reruns the flow with RCR outlets: the
+    summary records what was configured and why it changed, the report's checks flag it, and an interrupted
+    fallback resumes as a fallback (its marker matches the section), not under the split again."""
+    from carotid.errors import CarotidWarning
+    from carotid.io import read_json
+    from carotid.report.checks import quality_checks
+    from carotid.stages import FALLBACK_FILE, run_simulate
+
+    tube_mesh(SMALL).to_pyvista().save(tmp_path / "mesh.vtu")
+    section, calls = {"cycles": 0.01}, []
+    _blowing_up_under(monkeypatch, calls)
+    with pytest.warns(CarotidWarning, match=r"blew up under the prescribed split \(murray\) at t = 0.0030 s: "
+                                            "rerunning from t = 0 with RCR outlets"):
+        run_simulate(tmp_path, section, [tmp_path / "mesh.vtu"])
+    assert calls == ["murray", "rcr"]
+    summary = read_json(tmp_path / "flow" / "summary.json")
+    assert summary["outlets"]["model"] == "rcr" and summary["outlets"]["parameters"] is not None
+    assert summary["outlets"]["fallback"] == {"from": "murray", "reason": "the flow solution blew up at step 3 "
+                                                                          "(t = 0.00300 s): |u| = 12 m/s"}
+    assert summary["cycles"] == pytest.approx(0.01)
+    failed = [c for c in quality_checks({}, {}, {}, summary) if not c.passed]
+    assert [(c.quantity, c.value) for c in failed] == [
+        ("outlet model as configured (no RCR fallback after a blow-up)", "rcr after murray blew up")]
+    # rerun after an interruption: the marker says the fallback had started for this very section
+    calls.clear()
+    run_simulate(tmp_path, section, [tmp_path / "mesh.vtu"])
+    assert calls == ["rcr"] and read_json(tmp_path / "flow" / "summary.json")["outlets"]["fallback"]["from"] == "murray"
+    # another section starts under its own split again, and its marker is gone once that split runs through
+    calls.clear()
+    with pytest.warns(CarotidWarning, match="rerunning"):
+        run_simulate(tmp_path, {"cycles": 0.02}, [tmp_path / "mesh.vtu"])
+    assert calls == ["murray", "rcr"]
+    (tmp_path / "flow" / FALLBACK_FILE).write_text("not json")
+    calls.clear()
+    with pytest.warns(CarotidWarning, match="rerunning"):
+        run_simulate(tmp_path, {"cycles": 0.02}, [tmp_path / "mesh.vtu"])
+    assert calls == ["murray", "rcr"]
+
+
+@pytest.mark.parametrize("section", [{"blow_up_fallback": "none"}, {"outlets": "rcr"}])
+def test_the_stage_stops_at_a_blow_up_without_the_fallback_or_under_lumped_outlets(tmp_path, monkeypatch, section):
+    import carotid.flow.simulate as sim
+    from carotid.stages import FALLBACK_FILE, run_simulate
+
+    calls = []
+    _blowing_up_under(monkeypatch, calls, ("murray", "split", "rcr"))  # lumped outlets blow up too
+    tube_mesh(SMALL).to_pyvista().save(tmp_path / "mesh.vtu")
+    with pytest.raises(sim.FlowBlowUp):
+        run_simulate(tmp_path, {"cycles": 0.01, **section}, [tmp_path / "mesh.vtu"])
+    assert calls == [section.get("outlets", "murray")]
+    assert not (tmp_path / "flow" / FALLBACK_FILE).exists()
+
+
 def test_bad_inputs(tmp_path):
     mesh = tube_mesh(SMALL)
     labels = mesh.labels.copy()

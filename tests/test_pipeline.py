@@ -341,8 +341,9 @@ def test_cohort_columns_of_cycle_state_and_convergence_are_the_records(tmp_path)
 
 def test_cohort_columns_say_which_grades_and_results_to_doubt(tmp_path):
     """stenosis_category is the report's (a near-occlusion whatever its percentage), stenosis_calcified says
-    whether calcium lies within CALCIFIED_MM of the throat's lumen, and checks_failed / failed_checks list the
-    report's failed quality checks; all empty or zero when the records are absent."""
+    whether calcium lies within CALCIFIED_MM of the throat's lumen, checks_failed / failed_checks list the
+    report's failed quality checks, and outlets / outlets_fallback the outlet model the flow ran with and the
+    split it replaced after a blow-up; all empty or zero when the records are absent."""
     from carotid.batch import Case, case_summary, write_cohort
     from carotid.centerline.plaque import CALCIFIED_MM
     from carotid.report.checks import MAX_DIHEDRAL_LAYER_DEG, MAX_SPLIT_ERROR
@@ -359,7 +360,8 @@ def test_cohort_columns_say_which_grades_and_results_to_doubt(tmp_path):
     (calcified / "mesh_quality.json").write_text(json.dumps({"layer": {"max_dihedral_deg": MAX_DIHEDRAL_LAYER_DEG + 1}}))
     (calcified / "flow").mkdir()
     (calcified / "flow" / "summary.json").write_text(json.dumps({"mass_balance": {"outlets": {
-        "3": {"error_max": 0.5 * MAX_SPLIT_ERROR}, "4": {"error_max": 2.0 * MAX_SPLIT_ERROR}}}}))
+        "3": {"error_max": 0.5 * MAX_SPLIT_ERROR}, "4": {"error_max": 2.0 * MAX_SPLIT_ERROR}}},
+        "outlets": {"model": "rcr", "fallback": {"from": "murray", "reason": "blew up"}}}))
     (soft / "mesh_quality.json").write_text(json.dumps({"layer": {"max_dihedral_deg": MAX_DIHEDRAL_LAYER_DEG - 1}}))
     empty.mkdir()
     rows = [case_summary(Case(path.name, tmp_path / "image.nii.gz", {}), path, {"status": "ok"})
@@ -370,9 +372,12 @@ def test_cohort_columns_say_which_grades_and_results_to_doubt(tmp_path):
     assert near_row["stenosis_category"] == "near-occlusion" and near_row["stenosis_calcium_mm"] == ""
     assert calcified_row["stenosis_category"] == ">=70 %" and soft_row["stenosis_category"] == "50-69 %"
     assert [r["stenosis_calcified"] for r in (near_row, calcified_row, soft_row)] == ["False", "True", "False"]
-    assert calcified_row["checks_failed"] == "2"
+    assert calcified_row["checks_failed"] == "3"
     assert calcified_row["failed_checks"] == ("mesh: largest dihedral angle, wall layers (deg); "
-                                              "flow: outlet 4: flow-split error, largest")
+                                              "flow: outlet 4: flow-split error, largest; "
+                                              "flow: outlet model as configured (no RCR fallback after a blow-up)")
+    assert (calcified_row["outlets"], calcified_row["outlets_fallback"]) == ("rcr", "murray")
+    assert soft_row["outlets"] == soft_row["outlets_fallback"] == ""
     assert soft_row["checks_failed"] == "0" and soft_row["failed_checks"] == ""
     assert empty_row["stenosis_category"] == empty_row["stenosis_calcified"] == empty_row["failed_checks"] == ""
     assert empty_row["checks_failed"] == "0"

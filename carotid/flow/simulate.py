@@ -449,6 +449,15 @@ class _DeferredInterrupt:
             signal.signal(signal.SIGINT, signal.default_int_handler if self._previous is None else self._previous)
 
 
+class FlowBlowUp(CarotidError):
+    """The solution left the finite or physical range (``|u|`` above ``max_speed``) at time ``time_s`` (s) of
+    the time loop; the last good checkpoint is kept."""
+
+    def __init__(self, message: str, time_s: float):
+        super().__init__(message)
+        self.time_s = time_s
+
+
 def _blow_up_hint(params: FlowParameters) -> str:
     """What to try after a blow-up.  A prescribed split forces each outlet's share through the lumen at
     whatever pressure it takes; behind a tight stenosis that can diverge with a smaller time step and a finer
@@ -478,9 +487,9 @@ def _run_steps(solver: CBSSolver, writer: FlowWriter, wall: WallShear, params: F
         if not ok:
             speed = float(np.linalg.norm(solver.u[node]))
             where = np.round(mesh.points[node] / MM, 2).tolist()
-            raise CarotidError(f"the flow solution blew up at step {solver.step_count} (t = {solver.t:.5f} s): "
-                               f"|u| = {speed:.3g} m/s at {where} mm; the last good checkpoint is kept in {ckpt} "
-                               f"({_blow_up_hint(params)})")
+            raise FlowBlowUp(f"the flow solution blew up at step {solver.step_count} (t = {solver.t:.5f} s): "
+                             f"|u| = {speed:.3g} m/s at {where} mm; the last good checkpoint is kept in {ckpt} "
+                             f"({_blow_up_hint(params)})", solver.t)
         cycle_end = solver.t >= boundary * (1 - 1e-12)
         output = solver.step_count % params.output_every == 0 or cycle_end or solver.t >= t_end * (1 - 1e-12)
         if recorder.due(solver.t, force=output):  # the pressure in Pa only for a sample that is kept
