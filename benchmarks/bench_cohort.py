@@ -6,7 +6,8 @@ scan to report with the demo's coarse settings (``cli.DEMO_CONFIG``: 0.8 mm surf
 one cardiac cycle), and no seed, stop point or parameter of its own.  Per case the script records whether
 it finished, the stage and reason where it failed, the grade against the true lumen graded the same way
 (``bench_segmentation.grade`` on the generator's level set: NASCET error in points), and what ``cohort.csv``
-tells a user to doubt: the stenosis called calcified, and the report's quality checks that failed.
+tells a user to doubt: the stenosis called calcified, the report's quality checks that failed, and the
+flows rerun with RCR outlets after the prescribed split blew up (with their ICA PSV and pressure drop).
 
 There is no peer: VMTK, SimVascular and 3D Slicer have no unattended scan-to-flow path to compare against.
 
@@ -95,7 +96,11 @@ def main() -> None:
                       "stenosis_category": row.get("stenosis_category") or None,
                       "stenosis_calcified": row.get("stenosis_calcified") == "True",
                       "checks_failed": int(row["checks_failed"]) if row.get("checks_failed") else None,
-                      "failed_checks": row.get("failed_checks") or None})
+                      "failed_checks": row.get("failed_checks") or None,
+                      "outlets_fallback": row.get("outlets_fallback") or None,
+                      "ica_psv_cm_s": float(row["ica_psv_cm_s"]) if row.get("ica_psv_cm_s") else None,
+                      "stenosis_pressure_drop_mmhg": float(row["stenosis_pressure_drop_mmhg"])
+                      if row.get("stenosis_pressure_drop_mmhg") else None})
     errors = np.array([abs(c["nascet_error_points"]) for c in cases if c["nascet_error_points"] is not None])
     failed = [c for c in cases if c["status"] != "ok"]
     checks = [name for c in cases if c["failed_checks"] for name in c["failed_checks"].split("; ")]
@@ -113,6 +118,7 @@ def main() -> None:
                           sum(1 for c in cases if c["stenosis_calcified"] == value and c["nascet_error_points"]
                               is not None)]
                    for flag, value in (("calcified", True), ("not_calcified", False))},
+               "outlets_fallback": sorted(c["case_id"] for c in cases if c["outlets_fallback"]),
                "cases_with_failed_checks": sum(1 for c in cases if c["checks_failed"]),
                "failed_checks": {name: checks.count(name) for name in sorted(set(checks))},
                "batch_exit_status": batch.returncode, "batch_seconds": seconds}
