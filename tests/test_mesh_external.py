@@ -322,6 +322,17 @@ def test_bad_surface_file_is_one_line_and_exit_2(tube, tmp_path, capfd, kind, me
     assert "--from-surface` caps" not in err
 
 
+def test_a_speck_beside_the_surface_is_dropped_with_a_warning(tube, tmp_path, capfd):
+    points, triangles, _ = tube
+    speck = pv.Sphere(radius=0.5, center=(12.0, 0.0, 10.0)).triangulate()
+    binary_stl(path := tmp_path / "speck.stl", np.vstack([points, speck.points]),
+               np.vstack([triangles, speck.regular_faces + len(points)]))
+    assert main(["mesh", "--from-surface", str(path), "-o", str(tmp_path / "case"), "--layers", "1"]) == 0
+    assert "1 small separate piece dropped" in capfd.readouterr().err
+    caps = np.unique(pv.read(tmp_path / "case" / "surface.vtp").cell_data["CellEntityIds"])
+    assert caps.tolist() == [1, 2, 3]  # the tube's wall, inlet and outlet; no speck left as a wall
+
+
 def test_junk_surface_vtp_in_a_case_is_one_line(tmp_path, capfd):
     (tmp_path / "surface.vtp").write_text("<VTKFile junk")
     assert main(["mesh", str(tmp_path)]) == 2

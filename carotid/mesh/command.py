@@ -7,7 +7,8 @@ a labelled closed surface is used as is, an open one gets a planar cap per
 boundary loop, an unlabelled closed one gets its flat end caps detected.
 The file must be in mm (``--scale 1000`` for metres, ``--scale 0.001`` for
 micrometres: a surface spanning less than 0.5 or more than 1000 units is
-refused, and so is a flat one or one of several pieces).  A surface with
+refused, and so is a flat one or one of several pieces of comparable size; specks beside the lumen are
+dropped with a warning).  A surface with
 self-intersecting or needle triangles has its wall remeshed in place first
 (``carotid.mesh.repair``).
 With ``--from-surface`` the case folder also gets the surface that was meshed
@@ -33,7 +34,7 @@ from carotid.mesh.io import write_mesh
 from carotid.mesh.mesher import build_mesh, median_edge
 from carotid.mesh.repair import remesh_wall, surface_defects
 from carotid.stages import MeshStageParameters
-from carotid.surface.external import SUFFIXES, check_extent
+from carotid.surface.external import SUFFIXES, check_extent, main_piece
 from carotid.surface.mesh import face_components, signed_volume
 
 
@@ -63,7 +64,8 @@ def external_surface(poly: pv.PolyData, scale: float | None = None) -> pv.PolyDa
     CarotidError
         Non-positive scale, a surface spanning less than 0.5 mm (metres given
         as mm) or more than 1000 mm (micrometres), a flat surface, one of
-        several pieces, or one with holes that flat caps do not close.
+        several comparable pieces (``carotid.surface.external.main_piece``), or one with holes that flat caps
+        do not close.
     """
     poly = poly.triangulate().clean()
     if scale is not None:
@@ -71,9 +73,8 @@ def external_surface(poly: pv.PolyData, scale: float | None = None) -> pv.PolyDa
             raise CarotidError(f"--scale {scale} must be positive")
         poly.points = np.asarray(poly.points) * float(scale)
     check_extent(np.asarray(poly.points, float))
-    pieces = np.unique(face_components(poly.n_points, poly.regular_faces)).size
-    if pieces > 1:
-        raise CarotidError(f"the surface has {pieces} separate pieces; a lumen is one: keep the lumen's piece only")
+    if np.unique(face_components(poly.n_points, poly.regular_faces)).size > 1:
+        poly = poly.remove_cells(~main_piece(np.asarray(poly.points, float), poly.regular_faces)).clean()
     _, _, counts = edge_faces(poly.regular_faces)
     if (counts == 1).any():
         capped = cap_open_ends(poly)
