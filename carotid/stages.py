@@ -243,11 +243,14 @@ class FlowStageParameters:
         """The solver's ``FlowParameters``, validated."""
         from carotid.flow.simulate import FlowParameters
 
-        from carotid.flow.waveform import ML, constant_waveform, read_waveform_csv
+        from carotid.flow.waveform import ML, check_inflow, constant_waveform, read_waveform_csv
 
         if self.waveform and self.flow_ml_s:
             raise CarotidError("bad simulate parameter: give a waveform file or a constant flow_ml_s, not both")
         from carotid.flow.probes import read_probe_csv
+
+        if self.flow_ml_s:
+            check_inflow(1.0, self.flow_ml_s, "bad simulate parameter: flow_ml_s")
 
         waveform = (read_waveform_csv(self.waveform) if self.waveform else
                     constant_waveform(self.flow_ml_s * ML) if self.flow_ml_s else None)
@@ -266,13 +269,7 @@ class FlowStageParameters:
     def validate(self) -> "FlowStageParameters":
         """Raise CarotidError for values outside their range, and for what the solver's parameters refuse, so that
         ``carotid run`` stops before its first stage, not at the flow's."""
-        from carotid.flow.waveform import MIN_MEAN_FLOW_ML
-
         check_ranges("simulate", self, self.RANGES)
-        if 0 < self.flow_ml_s < MIN_MEAN_FLOW_ML:
-            raise CarotidError(f"bad simulate parameter: flow_ml_s = {self.flow_ml_s:g} is below "
-                               f"{MIN_MEAN_FLOW_ML:g} mL/s (a carotid carries 2-20 mL/s; the adaptive time step "
-                               "would span the whole cycle)")
         if self.blow_up_fallback not in BLOW_UP_FALLBACKS:
             raise CarotidError(f"bad simulate parameter: blow_up_fallback must be one of "
                                f"{', '.join(BLOW_UP_FALLBACKS)} (got {self.blow_up_fallback!r})")

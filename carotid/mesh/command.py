@@ -27,26 +27,14 @@ import numpy as np
 import pyvista as pv
 
 from carotid.errors import CarotidError
-from carotid.io.vtkfile import read_vtk
 from carotid.mesh.boundary import LABELS, cap_open_ends, check_surface, edge_faces, label_flat_caps
 from carotid.mesh.core import CORES
 from carotid.mesh.io import write_mesh
 from carotid.mesh.mesher import build_mesh, median_edge
 from carotid.mesh.repair import remesh_wall, surface_defects
 from carotid.stages import MeshStageParameters
-from carotid.surface.external import SUFFIXES, check_extent, main_piece
+from carotid.surface.external import check_extent, main_piece, read_surface
 from carotid.surface.mesh import face_components, signed_volume
-
-
-def read_surface(path: Path) -> pv.PolyData:
-    """Read a triangle surface file (mm or other units); CarotidError if it is missing, unreadable or has no faces."""
-    data = read_vtk(path, "surface", SUFFIXES)
-    if not isinstance(data, pv.PolyData):
-        data = data.extract_surface(algorithm="dataset_surface")
-    data = data.triangulate()
-    if not data.faces.size:
-        raise CarotidError(f"{path}: the surface has no faces ({data.n_points} points, no triangles or polygons)")
-    return data
 
 
 def external_surface(poly: pv.PolyData, scale: float | None = None) -> pv.PolyData:

@@ -74,6 +74,24 @@ def check_extent(points: np.ndarray, where: str = "") -> None:
                            f"{extent:.3g} mm long): a lumen surface encloses a volume; export it in 3-D")
 
 
+def read_surface(path: Path) -> pv.PolyData:
+    """A triangle surface file (``SUFFIXES``; a volume mesh gives its boundary), in its own units.
+
+    Raises
+    ------
+    CarotidError
+        If the file is missing, unreadable or not a surface file (:func:`carotid.io.vtkfile.read_vtk`), or has
+        no faces.
+    """
+    data = read_vtk(path, "surface", SUFFIXES)
+    if not isinstance(data, pv.PolyData):
+        data = data.extract_surface(algorithm="dataset_surface")
+    data = data.triangulate()
+    if not data.faces.size:
+        raise CarotidError(f"{path}: the surface has no faces ({data.n_points} points, no triangles or polygons)")
+    return data
+
+
 def main_piece(points: np.ndarray, faces: np.ndarray, where: str = "") -> np.ndarray:
     """The faces of the piece of a surface with the largest area; the other pieces may only be debris.
 
@@ -173,12 +191,7 @@ def load_external_surface(path: str | Path, scale: float | None = None) -> tuple
         or folded rims), or open ends that are not simple loops.
     """
     path = Path(path)
-    mesh = read_vtk(path, "surface", SUFFIXES)
-    if not isinstance(mesh, pv.PolyData):
-        mesh = mesh.extract_surface()
-    mesh = mesh.triangulate().clean(tolerance=1e-9, absolute=False)
-    if not mesh.faces.size:
-        raise CarotidError(f"{path}: the file holds no triangles")
+    mesh = read_surface(path).clean(tolerance=1e-9, absolute=False)
     points, faces, _ = from_polydata(pv.PolyData(mesh.points, mesh.faces))
     if scale is not None:
         if not scale > 0:
