@@ -127,7 +127,7 @@ class MeshStageParameters:
 
 
 BLOW_UP_FALLBACKS = ("rcr", "none")
-# Written in flow/ when the stage falls back to RCR outlets: the section it ran for and why, so that an
+# Written in flow/ while the stage runs its RCR fallback: the section and mesh it runs for and why, so that an
 # interrupted fallback resumes as a fallback instead of blowing up again under the prescribed split.
 FALLBACK_FILE = "outlets_fallback.json"
 
@@ -336,18 +336,6 @@ def run_mesh(case_dir: Path, params: dict, inputs: list[Path]) -> None:
     write_mesh(mesh, case_dir, quality)
 
 
-def _started_fallback(marker: Path, params: dict) -> dict | None:
-    """The fallback record of ``marker`` (``flow/outlets_fallback.json``) when it was written for the same
-    ``[simulate]`` section, else None (also for a marker that cannot be read)."""
-    import json
-
-    from carotid.io import read_json
-
-    record = read_json(marker)
-    same = isinstance(record, dict) and record.get("params") == json.loads(json.dumps(params))
-    return record.get("fallback") if same else None
-
-
 def run_simulate(case_dir: Path, params: dict, inputs: list[Path], progress=None) -> None:
     """The ``simulate`` stage: ``mesh.vtu`` -> ``flow/``.
 
@@ -359,8 +347,8 @@ def run_simulate(case_dir: Path, params: dict, inputs: list[Path], progress=None
     ``blow_up_fallback = "rcr"`` the stage then warns and reruns from t = 0 with RCR outlets calibrated for
     the same split as the mean share, as a SimVascular user would by hand: the flow redistributes under a
     physiological outlet pressure instead.  ``flow/summary.json`` records it under ``outlets.fallback`` (the
-    configured model and the blow-up's message), and ``flow/outlets_fallback.json`` lets an interrupted
-    fallback resume as one.
+    configured model and where and when it blew up), and ``flow/outlets_fallback.json``, kept until the
+    fallback has finished, lets an interrupted one resume as a fallback for the same section and mesh.
 
     Parameters
     ----------
@@ -373,12 +361,14 @@ def run_simulate(case_dir: Path, params: dict, inputs: list[Path], progress=None
         Receives after every step the simulated time as a fraction of the run's end time, with the cycle,
         the time (s), the CFL number and the mass imbalance (%), and the solver's estimate of the run as a line.
     """
+    import json
     import warnings
     from dataclasses import replace
 
     from carotid.errors import CarotidWarning
     from carotid.flow.simulate import FlowBlowUp, simulate
-    from carotid.io import write_json
+    from carotid.io import read_json, write_json
+    from carotid.pipeline import file_hash
 
     stage = FlowStageParameters(**params).validate()
     flow = stage.flow_parameters()
@@ -392,7 +382,9 @@ def run_simulate(case_dir: Path, params: dict, inputs: list[Path], progress=None
         return simulate(inputs[0], case_dir, parameters, resume="auto", progress=None if progress is None else report,
                         log=None if progress is None else progress.write)
 
-    fallback = _started_fallback(marker, params) if stage.blow_up_fallback == "rcr" else None
+    key = {"params": json.loads(json.dumps(params)), "mesh": file_hash(inputs[0])}
+    record = read_json(marker)  # a fallback started for this section and mesh resumes as one
+    fallback = record.get("fallback") if isinstance(record, dict) and record.get("key") == key else None
     marker.unlink(missing_ok=True)
     if fallback is None:
         try:
@@ -401,12 +393,18 @@ def run_simulate(case_dir: Path, params: dict, inputs: list[Path], progress=None
         except FlowBlowUp as exc:
             if stage.blow_up_fallback != "rcr" or flow.outlets not in ("murray", "split"):
                 raise
-            fallback = {"from": flow.outlets, "reason": str(exc)}
+            fallback = {"from": flow.outlets, "reason": f"blew up at {exc.detail}"}
             warnings.warn(f"the flow blew up under the prescribed split ({flow.outlets}) at t = {exc.time_s:.4f} s: "
                           "rerunning from t = 0 with RCR outlets calibrated for the same split", CarotidWarning,
                           stacklevel=2)
     marker.parent.mkdir(parents=True, exist_ok=True)
-    write_json({"params": params, "fallback": fallback}, marker)
-    summary = run(replace(flow, outlets="rcr"))
+    write_json({"key": key, "fallback": fallback}, marker)
+    try:
+        summary = run(replace(flow, outlets="rcr", rcr=None))
+    except FlowBlowUp as exc:
+        raise FlowBlowUp(f"the flow {fallback['reason']} under the prescribed split ({fallback['from']}) and again "
+                         f"under the RCR outlets of the fallback, at {exc.detail}: try a smaller --dt or a finer mesh",
+                         exc.time_s, exc.detail) from None
     summary["outlets"]["fallback"] = fallback
     write_json(summary, case_dir / "flow" / "summary.json")
+    marker.unlink()

@@ -268,7 +268,8 @@ def _nifti_scan(path: Path) -> tuple[float, int, tuple]:
     Returns
     -------
     missing : float
-        Fraction of the voxel data the file lacks (0 when complete; to 64 KiB for a cut ``.gz``).
+        Fraction of the voxel data the file lacks (0 when complete; for a cut ``.gz``, over by at most one 64 KiB
+        read).
     bad : int
         NaN or infinite voxels (0 for integer files).
     pixdim : tuple of float

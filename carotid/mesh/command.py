@@ -34,7 +34,7 @@ from carotid.mesh.mesher import build_mesh, median_edge
 from carotid.mesh.repair import remesh_wall, surface_defects
 from carotid.stages import MeshStageParameters
 from carotid.surface.external import check_extent, main_piece, read_surface
-from carotid.surface.mesh import face_components, signed_volume
+from carotid.surface.mesh import compact, signed_volume
 
 
 def external_surface(poly: pv.PolyData, scale: float | None = None) -> pv.PolyData:
@@ -60,9 +60,13 @@ def external_surface(poly: pv.PolyData, scale: float | None = None) -> pv.PolyDa
         if not scale > 0:
             raise CarotidError(f"--scale {scale} must be positive")
         poly.points = np.asarray(poly.points) * float(scale)
+    keep = main_piece(np.asarray(poly.points, float), poly.regular_faces)
+    if not keep.all():
+        points, faces = compact(np.asarray(poly.points, float), poly.regular_faces[keep])
+        labels = {LABELS: np.asarray(poly.cell_data[LABELS])[keep]} if LABELS in poly.cell_data else {}
+        poly = pv.PolyData(points, np.c_[np.full(len(faces), 3), faces].ravel())
+        poly.cell_data.update(labels)
     check_extent(np.asarray(poly.points, float))
-    if np.unique(face_components(poly.n_points, poly.regular_faces)).size > 1:
-        poly = poly.remove_cells(~main_piece(np.asarray(poly.points, float), poly.regular_faces)).clean()
     _, _, counts = edge_faces(poly.regular_faces)
     if (counts == 1).any():
         capped = cap_open_ends(poly)

@@ -1,8 +1,8 @@
 """Lumen surfaces made by other tools (STL, VTP, VTK, OBJ, PLY), closed or open-ended, and their level set.
 
 The surface is cleaned (duplicate points merged), reduced to its main piece (specks dropped with a warning,
-comparable pieces refused: ``main_piece``) and checked for 2-manifoldness; open ends (boundary loops, as left by tools that do not cap) are closed by planar caps
-so that inside and outside are defined.  ``levelset_from_surface`` samples the signed distance on a
+comparable pieces refused: ``main_piece``) and checked for 2-manifoldness; open ends (boundary loops, as
+left by tools that do not cap) are closed by planar caps so that inside and outside are defined.  ``levelset_from_surface`` samples the signed distance on a
 regular grid: the sign from VTK's scan conversion (vtkPolyDataToImageStencil through pyvista), the
 distance exact (to the nearest triangle, ``carotid.surface.project``) near the surface and from
 scipy's Euclidean distance transform further away, which the centerline stage then
@@ -28,8 +28,8 @@ from carotid.io import Volume
 from carotid.io.vtkfile import read_vtk
 from carotid.mesh.boundary import INLET, label_flat_caps
 from carotid.surface.clip import planar_cap
-from carotid.surface.mesh import (WALL, boundary_loops, compact, face_areas, face_components, from_polydata, signed_volume,
-                                  to_polydata)
+from carotid.surface.mesh import (WALL, boundary_loops, compact, face_areas, face_components, from_polydata,
+                                  signed_volume, to_polydata)
 from carotid.surface.project import TriangleProjector
 from carotid.surface.quality import manifold_report, self_intersections
 
@@ -95,15 +95,14 @@ def read_surface(path: Path) -> pv.PolyData:
 def main_piece(points: np.ndarray, faces: np.ndarray, where: str = "") -> np.ndarray:
     """The faces of the piece of a surface with the largest area; the other pieces may only be debris.
 
-    Exports from segmentation tools often carry specks beside the lumen; a second piece of more than
-    ``FRAGMENT_FRACTION`` of the largest one's area (the segmentation's fragment rule,
-    :func:`carotid.centerline.skeleton.largest_component`) is another vessel or a lumen cut in two, which no
-    choice here would get right.
+    Exports from segmentation tools often carry specks beside the lumen.  Pieces holding together more than
+    ``FRAGMENT_FRACTION`` of the whole area (the segmentation's fragment rule,
+    :func:`carotid.centerline.skeleton.largest_component`) are another vessel or a lumen cut in two, which no
+    choice here would get right.  Only ratios of areas are compared, so the units do not matter.
 
     Parameters
     ----------
     points : ndarray, shape (n, 3)
-        Vertices, mm.
     faces : ndarray of int, shape (m, 3)
     where : str
         Prefix of the messages (the file, ``"path: "``), or empty.
@@ -116,7 +115,7 @@ def main_piece(points: np.ndarray, faces: np.ndarray, where: str = "") -> np.nda
     Raises
     ------
     CarotidError
-        When a second piece holds more than ``FRAGMENT_FRACTION`` of the largest one's area.
+        When the other pieces hold more than ``FRAGMENT_FRACTION`` of the area.
 
     Warns
     -----
@@ -125,17 +124,17 @@ def main_piece(points: np.ndarray, faces: np.ndarray, where: str = "") -> np.nda
     """
     comp = face_components(len(points), faces)
     areas = np.bincount(comp, weights=face_areas(points, faces))
-    order = np.argsort(areas)[::-1]
-    if len(areas) > 1 and areas[order[1]] > FRAGMENT_FRACTION * areas[order[0]]:
-        big = areas[order][areas[order] > FRAGMENT_FRACTION * areas[order[0]]]
-        raise CarotidError(f"{where}the surface has {len(big)} separate pieces of {', '.join(f'{a:.0f}' for a in big)} "
-                           "mm^2; a lumen is one: keep the lumen's piece only")
-    if len(areas) > 1:
-        dropped = len(areas) - 1
-        warnings.warn(f"{where}{dropped} small separate piece{'s' if dropped > 1 else ''} dropped "
-                      f"({100 * (1 - areas[order[0]] / areas.sum()):.2g} % of the surface's area)", CarotidWarning,
-                      stacklevel=2)
-    return comp == order[0]
+    largest = int(np.argmax(areas))
+    others, dropped = len(areas) - 1, 1.0 - areas[largest] / areas.sum()
+    if dropped > FRAGMENT_FRACTION:
+        shares = np.sort(areas)[::-1] / areas[largest]
+        raise CarotidError(f"{where}the surface has {len(areas)} separate pieces, the next largest "
+                           f"{', '.join(f'{100 * a:.0f}' for a in shares[1:4])}{', ...' if others > 3 else ''} % of "
+                           "the largest one's area; a lumen is one: keep the lumen's piece only")
+    if others:
+        warnings.warn(f"{where}{others} small separate piece{'s' if others > 1 else ''} dropped "
+                      f"({100 * dropped:.2g} % of the surface's area)", CarotidWarning, stacklevel=2)
+    return comp == largest
 
 
 def _close_loops(points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
@@ -197,8 +196,8 @@ def load_external_surface(path: str | Path, scale: float | None = None) -> tuple
         if not scale > 0:
             raise CarotidError(f"--scale {scale} must be positive")
         points = points * float(scale)
-    check_extent(points, f"{path}: ")
     points, faces = compact(points, faces[main_piece(points, faces, f"{path}: ")])
+    check_extent(points, f"{path}: ")
     report = manifold_report(len(points), faces)
     if report["nonmanifold_edges"] or report["nonmanifold_vertices"]:
         raise CarotidError(f"{path}: the surface is not a 2-manifold ({report['nonmanifold_edges']} edges in more "
