@@ -1,8 +1,8 @@
 """``carotid batch``: a cohort of cases on Dask distributed.
 
-Each case's stages are a chain of Dask tasks (stage *k* depends on stage
-*k-1* of the same case only), so different cases run side by side on the
-workers.  Bad input (``CarotidError``) fails its case at once with the
+Each stage of a case is a Dask task, submitted when the case's previous
+stage has finished (``_drive``), so different cases run side by side and
+every stage goes to whichever worker frees up first.  Bad input (``CarotidError``) fails its case at once with the
 reason and is not retried; any other exception is retried (``retries``)
 as possibly transient, and fails the case if it persists.  One failed case
 never stops the others.  Every stage goes through ``pipeline.run_stage``, so
@@ -257,9 +257,7 @@ class StageFailure(RuntimeError):
 
 def _stage_task(case: Case, case_dir: str, stage_name: str, previous: dict | None) -> dict:
     """Run one stage of one case (a Dask task): ``{"status": "ok"|"failed", ...}``; ``StageFailure`` on an
-    unexpected error."""
-    if previous is not None and previous["status"] != "ok":
-        return previous
+    unexpected error.  ``previous`` is the outcome of the case's previous stage (None for the first)."""
     stage = next(s for s in STAGES if s.name == stage_name)
     try:
         if not case.image.exists():
@@ -375,20 +373,35 @@ def _print_err(line: str) -> None:
     print(line, file=sys.stderr, flush=True)
 
 
-def _outcome(final) -> dict:
-    """The outcome of a case from the future of its last stage."""
+def _outcome(future) -> dict:
+    """The outcome of a finished stage task's future."""
     try:
-        return final.result()
+        return future.result()
     except StageFailure as exc:  # an unexpected error of a stage that persisted through the retries
         return {"status": "failed", "failed_stage": exc.stage, "reason": exc.reason}
     except Exception as exc:  # outside the stages (a worker that died)
         return {"status": "failed", "failed_stage": "", "reason": f"{type(exc).__name__}: {exc}"}
 
 
-def _watch(client, finals: dict, tasks: list, log: Callable[[str], None], every: float) -> dict:
-    """Wait for every case, logging each case that ends and, at least every ``every`` seconds, the cases done,
-    failed, running (a stage of theirs on a worker, executing or queued there) and waiting, the elapsed time and
-    an ETA extrapolated from the fraction of stage tasks finished.
+def _submit(client, case: Case, out_dir: Path, index: int, previous: dict | None, retries: int):
+    """Submit stage ``STAGE_NAMES[index]`` of ``case`` as a Dask task (a future).  A later stage has the higher
+    priority, so that cases already begun go on before new ones begin."""
+    name = STAGE_NAMES[index]
+    return client.submit(_stage_task, case, str(out_dir / case.case_id), name, previous, key=f"{case.case_id}/{name}",
+                         retries=retries, pure=False, priority=index)
+
+
+def _drive(client, cases: list[Case], out_dir: Path, retries: int, log: Callable[[str], None],
+           every: float) -> dict:
+    """Run every case's stages in order, logging each case that ends and, at least every ``every`` seconds, the
+    cases done, failed, running (a stage of theirs on a worker) and waiting, the elapsed time and an ETA
+    extrapolated from the fraction of stage tasks finished.
+
+    Each stage is submitted when the case's previous stage has finished, with that stage's small outcome as a
+    value, not as a Dask dependency: the scheduler places a task on a worker holding its dependencies, which
+    would pin all of a case's stages to the worker of its first, and leave one worker idle while the other has
+    cases queued behind a long flow run.  Tasks without dependencies wait on the scheduler and go to whichever
+    worker frees up first.
 
     Returns
     -------
@@ -398,16 +411,26 @@ def _watch(client, finals: dict, tasks: list, log: Callable[[str], None], every:
     from dask.distributed import wait
 
     start = last = time.monotonic()
-    outcomes, pending = {}, set(tasks)
-    while len(outcomes) < len(finals):
+    current = {case.case_id: (case, 0, _submit(client, case, out_dir, 0, None, retries)) for case in cases}
+    outcomes, finished, total = {}, 0, len(cases) * len(STAGE_NAMES)
+    while current:
         try:
-            wait(list(pending), timeout=every, return_when="FIRST_COMPLETED")
+            wait([future for _, _, future in current.values()], timeout=every, return_when="FIRST_COMPLETED")
         except TimeoutError:
             pass
-        pending = {task for task in pending if task.status == "pending"}
-        ended = [case_id for case_id, final in finals.items() if case_id not in outcomes and final.status != "pending"]
-        for case_id in ended:
-            outcomes[case_id] = outcome = _outcome(finals[case_id])
+        ended = []
+        for case_id, (case, index, future) in list(current.items()):
+            if future.status == "pending":
+                continue
+            finished += 1
+            outcome = _outcome(future)
+            if outcome["status"] == "ok" and index + 1 < len(STAGE_NAMES):
+                current[case_id] = (case, index + 1, _submit(client, case, out_dir, index + 1, outcome, retries))
+                continue
+            total -= len(STAGE_NAMES) - 1 - index  # the stages a failed case does not run
+            del current[case_id]
+            outcomes[case_id] = outcome
+            ended.append(case_id)
             log(f"batch: {case_id} " + ("done" if outcome["status"] == "ok" else
                                         f"failed at {outcome['failed_stage'] or 'an unexpected error'}: "
                                         f"{outcome['reason']}"))
@@ -415,10 +438,10 @@ def _watch(client, finals: dict, tasks: list, log: Callable[[str], None], every:
         if ended or now - last >= every:
             running = {str(key).split("/")[0] for keys in client.processing().values() for key in keys} - set(outcomes)
             failed = sum(outcome["status"] != "ok" for outcome in outcomes.values())
-            fraction = 1 - len(pending) / len(tasks)
+            fraction = finished / total
             eta = format_duration((now - start) * (1 - fraction) / fraction) if fraction > 0 else "unknown"
-            log(f"batch: {len(outcomes) - failed} of {len(finals)} cases done, {failed} failed, {len(running)} "
-                f"running, {len(finals) - len(outcomes) - len(running)} waiting; {format_duration(now - start)} elapsed, "
+            log(f"batch: {len(outcomes) - failed} of {len(cases)} cases done, {failed} failed, {len(running)} "
+                f"running, {len(cases) - len(outcomes) - len(running)} waiting; {format_duration(now - start)} elapsed, "
                 f"ETA {eta}")
             last = now
     return outcomes
@@ -467,16 +490,8 @@ def run_batch(manifest: str | Path, out_dir: str | Path, *, scheduler: str | Non
         cluster = None if scheduler else LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                                       dashboard_address=None, silence_logs=logging.CRITICAL)
         with Client(scheduler or cluster) as client:
-            finals, tasks = {}, []
-            for case in cases:
-                previous = None
-                for name in STAGE_NAMES:
-                    previous = client.submit(_stage_task, case, str(out_dir / case.case_id), name, previous,
-                                             key=f"{case.case_id}/{name}", retries=retries, pure=False)
-                    tasks.append(previous)
-                finals[case.case_id] = previous
-            log(f"batch: {len(cases)} cases, {len(tasks)} stage tasks")
-            outcomes = _watch(client, finals, tasks, log, PROGRESS_SECONDS)
+            log(f"batch: {len(cases)} cases, {len(cases) * len(STAGE_NAMES)} stage tasks")
+            outcomes = _drive(client, cases, out_dir, retries, log, PROGRESS_SECONDS)
             rows = [case_summary(case, out_dir / case.case_id, outcomes[case.case_id]) for case in cases]
         if cluster is not None:
             cluster.close()

@@ -127,7 +127,7 @@ class MeshStageParameters:
 
 
 BLOW_UP_FALLBACKS = ("rcr", "none")
-# Written in flow/ when the stage falls back to RCR outlets: the section it ran for and why, so that an
+# Written in flow/ while the stage runs its RCR fallback: the section and mesh it runs for and why, so that an
 # interrupted fallback resumes as a fallback instead of blowing up again under the prescribed split.
 FALLBACK_FILE = "outlets_fallback.json"
 
@@ -243,11 +243,14 @@ class FlowStageParameters:
         """The solver's ``FlowParameters``, validated."""
         from carotid.flow.simulate import FlowParameters
 
-        from carotid.flow.waveform import ML, constant_waveform, read_waveform_csv
+        from carotid.flow.waveform import ML, check_inflow, constant_waveform, read_waveform_csv
 
         if self.waveform and self.flow_ml_s:
             raise CarotidError("bad simulate parameter: give a waveform file or a constant flow_ml_s, not both")
         from carotid.flow.probes import read_probe_csv
+
+        if self.flow_ml_s:
+            check_inflow(1.0, self.flow_ml_s, "bad simulate parameter: flow_ml_s")
 
         waveform = (read_waveform_csv(self.waveform) if self.waveform else
                     constant_waveform(self.flow_ml_s * ML) if self.flow_ml_s else None)
@@ -266,13 +269,7 @@ class FlowStageParameters:
     def validate(self) -> "FlowStageParameters":
         """Raise CarotidError for values outside their range, and for what the solver's parameters refuse, so that
         ``carotid run`` stops before its first stage, not at the flow's."""
-        from carotid.flow.waveform import MIN_MEAN_FLOW_ML
-
         check_ranges("simulate", self, self.RANGES)
-        if 0 < self.flow_ml_s < MIN_MEAN_FLOW_ML:
-            raise CarotidError(f"bad simulate parameter: flow_ml_s = {self.flow_ml_s:g} is below "
-                               f"{MIN_MEAN_FLOW_ML:g} mL/s (a carotid carries 2-20 mL/s; the adaptive time step "
-                               "would span the whole cycle)")
         if self.blow_up_fallback not in BLOW_UP_FALLBACKS:
             raise CarotidError(f"bad simulate parameter: blow_up_fallback must be one of "
                                f"{', '.join(BLOW_UP_FALLBACKS)} (got {self.blow_up_fallback!r})")
@@ -339,18 +336,6 @@ def run_mesh(case_dir: Path, params: dict, inputs: list[Path]) -> None:
     write_mesh(mesh, case_dir, quality)
 
 
-def _started_fallback(marker: Path, params: dict) -> dict | None:
-    """The fallback record of ``marker`` (``flow/outlets_fallback.json``) when it was written for the same
-    ``[simulate]`` section, else None (also for a marker that cannot be read)."""
-    import json
-
-    from carotid.io import read_json
-
-    record = read_json(marker)
-    same = isinstance(record, dict) and record.get("params") == json.loads(json.dumps(params))
-    return record.get("fallback") if same else None
-
-
 def run_simulate(case_dir: Path, params: dict, inputs: list[Path], progress=None) -> None:
     """The ``simulate`` stage: ``mesh.vtu`` -> ``flow/``.
 
@@ -362,8 +347,8 @@ def run_simulate(case_dir: Path, params: dict, inputs: list[Path], progress=None
     ``blow_up_fallback = "rcr"`` the stage then warns and reruns from t = 0 with RCR outlets calibrated for
     the same split as the mean share, as a SimVascular user would by hand: the flow redistributes under a
     physiological outlet pressure instead.  ``flow/summary.json`` records it under ``outlets.fallback`` (the
-    configured model and the blow-up's message), and ``flow/outlets_fallback.json`` lets an interrupted
-    fallback resume as one.
+    configured model and where and when it blew up), and ``flow/outlets_fallback.json``, kept until the
+    fallback has finished, lets an interrupted one resume as a fallback for the same section and mesh.
 
     Parameters
     ----------
@@ -376,12 +361,14 @@ def run_simulate(case_dir: Path, params: dict, inputs: list[Path], progress=None
         Receives after every step the simulated time as a fraction of the run's end time, with the cycle,
         the time (s), the CFL number and the mass imbalance (%), and the solver's estimate of the run as a line.
     """
+    import json
     import warnings
     from dataclasses import replace
 
     from carotid.errors import CarotidWarning
     from carotid.flow.simulate import FlowBlowUp, simulate
-    from carotid.io import write_json
+    from carotid.io import read_json, write_json
+    from carotid.pipeline import file_hash
 
     stage = FlowStageParameters(**params).validate()
     flow = stage.flow_parameters()
@@ -395,7 +382,9 @@ def run_simulate(case_dir: Path, params: dict, inputs: list[Path], progress=None
         return simulate(inputs[0], case_dir, parameters, resume="auto", progress=None if progress is None else report,
                         log=None if progress is None else progress.write)
 
-    fallback = _started_fallback(marker, params) if stage.blow_up_fallback == "rcr" else None
+    key = {"params": json.loads(json.dumps(params)), "mesh": file_hash(inputs[0])}
+    record = read_json(marker)  # a fallback started for this section and mesh resumes as one
+    fallback = record.get("fallback") if isinstance(record, dict) and record.get("key") == key else None
     marker.unlink(missing_ok=True)
     if fallback is None:
         try:
@@ -404,12 +393,18 @@ def run_simulate(case_dir: Path, params: dict, inputs: list[Path], progress=None
         except FlowBlowUp as exc:
             if stage.blow_up_fallback != "rcr" or flow.outlets not in ("murray", "split"):
                 raise
-            fallback = {"from": flow.outlets, "reason": str(exc)}
+            fallback = {"from": flow.outlets, "reason": f"blew up at {exc.detail}"}
             warnings.warn(f"the flow blew up under the prescribed split ({flow.outlets}) at t = {exc.time_s:.4f} s: "
                           "rerunning from t = 0 with RCR outlets calibrated for the same split", CarotidWarning,
                           stacklevel=2)
     marker.parent.mkdir(parents=True, exist_ok=True)
-    write_json({"params": params, "fallback": fallback}, marker)
-    summary = run(replace(flow, outlets="rcr"))
+    write_json({"key": key, "fallback": fallback}, marker)
+    try:
+        summary = run(replace(flow, outlets="rcr", rcr=None))
+    except FlowBlowUp as exc:
+        raise FlowBlowUp(f"the flow {fallback['reason']} under the prescribed split ({fallback['from']}) and again "
+                         f"under the RCR outlets of the fallback, at {exc.detail}: try a smaller --dt or a finer mesh",
+                         exc.time_s, exc.detail) from None
     summary["outlets"]["fallback"] = fallback
     write_json(summary, case_dir / "flow" / "summary.json")
+    marker.unlink()

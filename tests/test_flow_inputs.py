@@ -99,7 +99,7 @@ def test_a_waveform_outside_physiology_is_refused(tmp_path, rows, message):
 
 
 @pytest.mark.parametrize("fields, message", [
-    ({"flow_ml_s": 1e-12}, "flow_ml_s = 1e-12 is below 0.01 mL/s"),
+    ({"flow_ml_s": 1e-12}, "flow_ml_s: a mean flow of 1e-12 mL/s is below 0.01 mL/s"),
     ({"split": [0.6, 0.4]}, "split .* needs outlets .* split, resistance or rcr"),
     ({"doppler_cca_psv": 80.0}, "doppler_cca_psv without doppler_cca_edv: give both"),
     ({"doppler_cca_edv": 20.0}, "doppler_cca_edv without doppler_cca_psv: give both"),
@@ -118,3 +118,15 @@ def test_contradictory_or_meaningless_simulate_parameters_are_refused(fields, me
 def test_contradictory_options_exit_2(tube_case, capfd, argv, message):
     assert message in _one_error(capfd, ["simulate", tube_case, *argv])
     assert not (tube_case / "flow").exists()
+
+
+def test_a_waveform_given_through_the_api_must_carry_blood_in():
+    """``FlowParameters.validate`` refuses a waveform whose mean flow leaves through the inlet, whatever its
+    source; the physiological bounds of user input (``check_inflow``) are not imposed on the API, whose
+    verification cases run small tubes on short periods."""
+    from carotid.flow.simulate import FlowParameters
+    from carotid.flow.waveform import constant_waveform
+
+    with pytest.raises(CarotidError, match="mean flow is -6 mL/s: blood must enter through the CCA inlet"):
+        FlowParameters(waveform=constant_waveform(-6e-6)).validate()
+    FlowParameters(waveform=constant_waveform(0.2e-6, 0.05)).validate()

@@ -383,8 +383,12 @@ def test_simulate_runs_with_one_blas_thread(tmp_path):
 def test_blow_up_is_detected(tmp_path):
     from carotid.flow.simulate import simulate
 
-    with pytest.raises(CarotidError, match="blew up at step .* mm; the last good checkpoint .* --outlets rcr"):
+    from carotid.flow.simulate import FlowBlowUp
+
+    with pytest.raises(FlowBlowUp, match="blew up at step .* mm; the last good checkpoint .* --outlets rcr") as error:
         simulate(tube_mesh(SMALL), tmp_path, _params(dt=2e-3, cycles=0.2))
+    assert error.value.detail in str(error.value) and error.value.detail.startswith("step ")
+    assert f"(t = {error.value.time_s:.5f} s)" in error.value.detail
     assert (tmp_path / "flow" / "checkpoint.npz").is_file()
 
 
@@ -398,49 +402,74 @@ def _blowing_up_under(monkeypatch, calls, models=("murray", "split")):
     def simulate(mesh, case_dir, params, **kwargs):
         calls.append(params.outlets)
         if params.outlets in models:
-            raise sim.FlowBlowUp("the flow solution blew up at step 3 (t = 0.00300 s): |u| = 12 m/s", 0.003)
+            detail = "step 3 (t = 0.00300 s): |u| = 12 m/s at [1.0, 2.0, 3.0] mm"
+            raise sim.FlowBlowUp(f"the flow solution blew up at {detail}; ...", 0.003, detail)
         return real(mesh, case_dir, params, **kwargs)
 
     monkeypatch.setattr(sim, "simulate", simulate)
 
 
 def test_the_stage_reruns_a_blown_up_split_with_rcr_outlets_and_says_so(tmp_path, monkeypatch):
-    """Under ``carotid run`` a blow-up under the prescribed split reruns the flow with RCR outlets: the
-    summary records what was configured and why it changed, the report's checks flag it, and an interrupted
-    fallback resumes as a fallback (its marker matches the section), not under the split again."""
+    """Under ``carotid run`` a blow-up under the prescribed split reruns the flow with RCR outlets calibrated for
+    that split: the summary records what was configured and where it blew up, and the report's checks flag
+    it.  An interrupted fallback resumes as a fallback for the same section and mesh, and only for them."""
+    import json
+
     from carotid.errors import CarotidWarning
     from carotid.io import read_json
+    from carotid.pipeline import file_hash
     from carotid.report.checks import quality_checks
     from carotid.stages import FALLBACK_FILE, run_simulate
 
-    tube_mesh(SMALL).to_pyvista().save(tmp_path / "mesh.vtu")
-    section, calls = {"cycles": 0.01}, []
+    mesh = tmp_path / "mesh.vtu"
+    tube_mesh(SMALL).to_pyvista().save(mesh)
+    section, calls = {"cycles": 0.01, "rcr": [[1e8, 1e-10, 1e9]], "outlets": "split", "split": [1.0]}, []
     _blowing_up_under(monkeypatch, calls)
-    with pytest.warns(CarotidWarning, match=r"blew up under the prescribed split \(murray\) at t = 0.0030 s: "
+    with pytest.warns(CarotidWarning, match=r"blew up under the prescribed split \(split\) at t = 0.0030 s: "
                                             "rerunning from t = 0 with RCR outlets"):
-        run_simulate(tmp_path, section, [tmp_path / "mesh.vtu"])
-    assert calls == ["murray", "rcr"]
+        run_simulate(tmp_path, section, [mesh])
+    assert calls == ["split", "rcr"] and not (tmp_path / "flow" / FALLBACK_FILE).exists()
     summary = read_json(tmp_path / "flow" / "summary.json")
-    assert summary["outlets"]["model"] == "rcr" and summary["outlets"]["parameters"] is not None
-    assert summary["outlets"]["fallback"] == {"from": "murray", "reason": "the flow solution blew up at step 3 "
-                                                                          "(t = 0.00300 s): |u| = 12 m/s"}
-    assert summary["cycles"] == pytest.approx(0.01)
+    outlets = summary["outlets"]
+    assert outlets["model"] == "rcr" and summary["cycles"] == pytest.approx(0.01)
+    assert outlets["parameters"]["rp_pa_s_m3"][0] != 1e8  # calibrated for the split, not the values given for rcr
+    assert outlets["fallback"] == {"from": "split",
+                                   "reason": "blew up at step 3 (t = 0.00300 s): |u| = 12 m/s at [1.0, 2.0, 3.0] mm"}
     failed = [c for c in quality_checks({}, {}, {}, summary) if not c.passed]
     assert [(c.quantity, c.value) for c in failed] == [
-        ("outlet model as configured (no RCR fallback after a blow-up)", "rcr after murray blew up")]
-    # rerun after an interruption: the marker says the fallback had started for this very section
+        ("outlet model as configured (no RCR fallback after a blow-up)", "rcr after split blew up")]
+    # interrupted during the fallback: the marker for this section and mesh sends the rerun straight to RCR
+    marker = {"key": {"params": json.loads(json.dumps(section)), "mesh": file_hash(mesh)},
+              "fallback": outlets["fallback"]}
+    (tmp_path / "flow" / FALLBACK_FILE).write_text(json.dumps(marker))
     calls.clear()
-    run_simulate(tmp_path, section, [tmp_path / "mesh.vtu"])
-    assert calls == ["rcr"] and read_json(tmp_path / "flow" / "summary.json")["outlets"]["fallback"]["from"] == "murray"
-    # another section starts under its own split again, and its marker is gone once that split runs through
-    calls.clear()
-    with pytest.warns(CarotidWarning, match="rerunning"):
-        run_simulate(tmp_path, {"cycles": 0.02}, [tmp_path / "mesh.vtu"])
-    assert calls == ["murray", "rcr"]
-    (tmp_path / "flow" / FALLBACK_FILE).write_text("not json")
-    calls.clear()
-    with pytest.warns(CarotidWarning, match="rerunning"):
-        run_simulate(tmp_path, {"cycles": 0.02}, [tmp_path / "mesh.vtu"])
+    run_simulate(tmp_path, section, [mesh])
+    assert calls == ["rcr"] and not (tmp_path / "flow" / FALLBACK_FILE).exists()
+    assert read_json(tmp_path / "flow" / "summary.json")["outlets"]["fallback"] == outlets["fallback"]
+    # another section, another mesh or an unreadable marker: the split is tried first again
+    other = tube_mesh(TubeSpec(n_square=4, n_core=3, n_layers=4, first_layer=0.08, growth=1.4, n_axial=5, length=4.0))
+    for rerun, written in (({**section, "cycles": 0.02}, json.dumps(marker)), (section, "not json")):
+        for meshed in (mesh, tmp_path / "other.vtu"):
+            other.to_pyvista().save(tmp_path / "other.vtu")
+            (tmp_path / "flow" / FALLBACK_FILE).write_text(written)
+            calls.clear()
+            with pytest.warns(CarotidWarning, match="rerunning"):
+                run_simulate(tmp_path, rerun, [meshed])
+            assert calls[0] == "split"
+
+
+def test_a_fallback_that_blows_up_too_says_both(tmp_path, monkeypatch):
+    import carotid.flow.simulate as sim
+    from carotid.errors import CarotidWarning
+    from carotid.stages import run_simulate
+
+    calls = []
+    _blowing_up_under(monkeypatch, calls, ("murray", "split", "rcr"))
+    tube_mesh(SMALL).to_pyvista().save(tmp_path / "mesh.vtu")
+    with pytest.raises(sim.FlowBlowUp, match=r"the flow blew up at step 3 .* under the prescribed split \(murray\) "
+                                             "and again under the RCR outlets of the fallback, at step 3"):
+        with pytest.warns(CarotidWarning, match="rerunning"):
+            run_simulate(tmp_path, {"cycles": 0.01}, [tmp_path / "mesh.vtu"])
     assert calls == ["murray", "rcr"]
 
 
@@ -450,9 +479,9 @@ def test_the_stage_stops_at_a_blow_up_without_the_fallback_or_under_lumped_outle
     from carotid.stages import FALLBACK_FILE, run_simulate
 
     calls = []
-    _blowing_up_under(monkeypatch, calls, ("murray", "split", "rcr"))  # lumped outlets blow up too
+    _blowing_up_under(monkeypatch, calls, ("murray", "split", "rcr"))
     tube_mesh(SMALL).to_pyvista().save(tmp_path / "mesh.vtu")
-    with pytest.raises(sim.FlowBlowUp):
+    with pytest.raises(sim.FlowBlowUp, match="the flow solution blew up at step 3"):
         run_simulate(tmp_path, {"cycles": 0.01, **section}, [tmp_path / "mesh.vtu"])
     assert calls == [section.get("outlets", "murray")]
     assert not (tmp_path / "flow" / FALLBACK_FILE).exists()

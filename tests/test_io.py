@@ -146,6 +146,18 @@ def test_truncated_nifti_is_refused(tmp_path, suffix, kept):
     read_image(path)  # the whole file reads
 
 
+def test_a_cut_compressed_file_says_how_much_is_missing(tmp_path):
+    """Random voxels do not compress, so half of a .gz holds about half of the voxel data: the message says
+    so, not that all of it is missing (the reading stops at the cut, losing at most one 64 KiB read)."""
+    array = np.random.default_rng(1).normal(100, 20, (64, 64, 64)).astype(np.float32)  # 1 MiB
+    data = write_image(Volume(array), tmp_path / "image.nii.gz").read_bytes()
+    (cut := tmp_path / "cut.nii.gz").write_bytes(data[:len(data) // 2])
+    with pytest.raises(CarotidError, match="truncated") as error:
+        read_image(cut)
+    missing = float(str(error.value).split("truncated: ")[1].split("%")[0])
+    assert 45 <= missing <= 57
+
+
 def test_itk_messages_go_into_the_error_not_on_stderr(tmp_path, capfd):
     path = write_image(make_volume(), tmp_path / "image.mha", compress=False)
     data = path.read_bytes()

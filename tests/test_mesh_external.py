@@ -322,6 +322,32 @@ def test_bad_surface_file_is_one_line_and_exit_2(tube, tmp_path, capfd, kind, me
     assert "--from-surface` caps" not in err
 
 
+@pytest.mark.parametrize("labelled_file", [False, True])
+def test_a_speck_beside_the_surface_is_dropped_with_a_warning(tube, tmp_path, capfd, labelled_file):
+    """A speck is dropped from a plain STL and from a labelled VTP alike; the VTP keeps its labels."""
+    points, triangles, labelled = tube
+    speck = pv.Sphere(radius=0.5, center=(12.0, 0.0, 10.0)).triangulate()
+    both = (np.vstack([points, speck.points]), np.vstack([triangles, speck.regular_faces + len(points)]))
+    if labelled_file:
+        surface = pv.PolyData(both[0], np.c_[np.full(len(both[1]), 3), both[1]].ravel())
+        surface.cell_data["CellEntityIds"] = np.r_[labelled.cell_data["CellEntityIds"], np.ones(speck.n_cells, int)]
+        surface.save(path := tmp_path / "speck.vtp")
+    else:
+        binary_stl(path := tmp_path / "speck.stl", *both)
+    assert main(["mesh", "--from-surface", str(path), "-o", str(tmp_path / "case"), "--layers", "1"]) == 0
+    assert "1 small separate piece dropped" in capfd.readouterr().err
+    meshed = pv.read(tmp_path / "case" / "surface.vtp")
+    assert np.unique(meshed.cell_data["CellEntityIds"]).tolist() == [1, 2, 3]  # wall, inlet, outlet; no speck
+    assert meshed.bounds[1] < 4.0  # the tube alone (radius 3 mm); the speck lay at x = 11.5-12.5 mm
+    if labelled_file:  # the labelled caps are kept as they were: the same area per label
+        def area(surface, label):
+            cells = surface.extract_cells(surface.cell_data["CellEntityIds"] == label)
+            return cells.extract_surface(algorithm="dataset_surface").area
+
+        for label in (2, 3):
+            assert area(meshed, label) == pytest.approx(area(labelled, label), rel=0.02)
+
+
 def test_junk_surface_vtp_in_a_case_is_one_line(tmp_path, capfd):
     (tmp_path / "surface.vtp").write_text("<VTKFile junk")
     assert main(["mesh", str(tmp_path)]) == 2

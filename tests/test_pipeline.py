@@ -16,6 +16,7 @@ import zipfile
 import numpy as np
 import pytest
 
+from carotid.batch import STAGE_NAMES
 from carotid.cli import main
 from carotid.config import Config
 from carotid.errors import CarotidError
@@ -218,7 +219,19 @@ def test_an_unexpected_stage_error_names_its_stage(tmp_path, monkeypatch):
                                  "reason": "ZeroDivisionError: float division by zero"}
 
 
-def test_batch_isolates_a_corrupt_case(small_image, tmp_path, capsys):
+def test_batch_isolates_a_corrupt_case(small_image, tmp_path, capsys, monkeypatch):
+    """Five cases on two workers: the corrupt one fails alone, the others finish.  No stage task depends on a
+    Dask future (a dependency pins a case's stages to one worker, which can leave the other idle)."""
+    from dask.distributed import Client, Future
+
+    submitted = []
+    submit = Client.submit
+
+    def recording(self, func, *args, **kwargs):
+        submitted.append(any(isinstance(a, Future) for a in (*args, *kwargs.values())))
+        return submit(self, func, *args, **kwargs)
+
+    monkeypatch.setattr(Client, "submit", recording)
     images = {"first": small_image}
     for k, stenosis in enumerate((0.4, 0.5, 0.7)):
         folder = write_phantom(make_phantom(stenosis=stenosis, noise=15.0, seed=6 + k, **SMALL), tmp_path / f"p{k}")
@@ -253,6 +266,7 @@ def test_batch_isolates_a_corrupt_case(small_image, tmp_path, capsys):
     assert rows["broken"]["status"] == "failed" and rows["broken"]["failed_stage"] == "segment"
     assert "cannot be read as an image" in rows["broken"]["reason"]
     assert not (out / "broken").exists()
+    assert len(submitted) == 4 * len(STAGE_NAMES) + 1 and not any(submitted)
 
 
 def test_bad_manifest_is_one_clear_error(tmp_path, capsys):

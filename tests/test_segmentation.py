@@ -5,6 +5,7 @@ import pytest
 from scipy import ndimage
 
 from carotid.errors import CarotidError
+from carotid.io import Volume
 from carotid.phantom import LABELS, make_phantom, sample_family
 from carotid.segment import SegmentParameters, segment
 from carotid.segment.init import FORK_FIT, automatic_region, fork_score, fork_seeds, seed_levelset
@@ -109,6 +110,10 @@ def test_seed_outside_the_image_is_refused():
 
 def test_unusable_images_are_refused():
     p = phantom()
+    for spacing in ((1e-6, 1e-6, 1e-6), (0.5, 0.5, 500.0)):  # metres or micrometres written as mm
+        wrong = Volume(p.image.array, spacing=spacing, origin=p.image.origin, direction=p.image.direction)
+        with pytest.raises(CarotidError, match="voxel size .* mm is outside 0.01-20 mm"):
+            segment(wrong, seeds_xyz=[p.image.origin])
     constant = p.image.with_array(np.full(p.image.array.shape, 40.0, np.float32))
     with pytest.raises(CarotidError, match="constant"):
         segment(constant, seeds_xyz=[p.info["seeds_mm"]["CCA"]])

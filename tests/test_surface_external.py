@@ -178,3 +178,34 @@ def test_surfaces_in_micrometres_or_flat_are_refused(tmp_path):
     pv.PolyData(flat, tube.faces).save(tmp_path / "flat.stl")
     with pytest.raises(CarotidError, match="the surface is flat"):
         load_external_surface(tmp_path / "flat.stl")
+
+
+def test_specks_beside_the_lumen_are_dropped_and_a_second_vessel_is_refused(tmp_path):
+    """``main_piece``: a speck (a 0.5 mm sphere beside the tube) is dropped with a warning and the tube read
+    as alone; a second tube as large as the first is refused (keeping either would be a guess), as it was
+    read before as the first tube with two unexplained end caps."""
+    from carotid.errors import CarotidWarning
+
+    tube = labelled_tube(radius=3.0, length=20.0, size=1.0)
+    alone, _ = load_external_surface(_save(tmp_path / "tube.stl", tube))
+    speck = pv.Sphere(radius=0.5, center=(12.0, 0.0, 10.0)).triangulate()
+    with pytest.warns(CarotidWarning, match=r"1 small separate piece dropped \(0.\d+ % of the surface's area\)"):
+        kept, _ = load_external_surface(_save(tmp_path / "speck.stl", tube + speck))
+    assert kept.n_cells == alone.n_cells and abs(kept.volume - alone.volume) < 1e-9 * alone.volume
+    second = tube.copy()
+    second.points = np.asarray(second.points) + [20.0, 0.0, 0.0]
+    with pytest.raises(CarotidError, match="2 separate pieces, the next largest 100 % of the largest one's area; a "
+                                           "lumen is one"):
+        load_external_surface(_save(tmp_path / "two.stl", tube + second))
+    specks = tube.copy()  # 40 specks of 2 % of its area each: together more than a tenth of the area is not debris
+    for k in range(40):
+        specks = specks + pv.Sphere(radius=0.75, center=(12.0 + 2.0 * (k % 8), 2.0 * (k // 8), 0.0)).triangulate()
+    with pytest.raises(CarotidError, match=r"41 separate pieces, the next largest 2, 2, 2, \.\.\. %"):
+        load_external_surface(_save(tmp_path / "specks.stl", specks))
+    with pytest.raises(CarotidError, match="2 separate pieces"):
+        _run("--from-surface", str(tmp_path / "two.stl"), "-o", str(tmp_path / "case"))
+
+
+def _save(path, surface: pv.PolyData):
+    pv.PolyData(np.asarray(surface.points), surface.faces).save(path)
+    return path

@@ -7,7 +7,8 @@ a labelled closed surface is used as is, an open one gets a planar cap per
 boundary loop, an unlabelled closed one gets its flat end caps detected.
 The file must be in mm (``--scale 1000`` for metres, ``--scale 0.001`` for
 micrometres: a surface spanning less than 0.5 or more than 1000 units is
-refused, and so is a flat one or one of several pieces).  A surface with
+refused, and so is a flat one or one of several pieces of comparable size; specks beside the lumen are
+dropped with a warning).  A surface with
 self-intersecting or needle triangles has its wall remeshed in place first
 (``carotid.mesh.repair``).
 With ``--from-surface`` the case folder also gets the surface that was meshed
@@ -26,26 +27,14 @@ import numpy as np
 import pyvista as pv
 
 from carotid.errors import CarotidError
-from carotid.io.vtkfile import read_vtk
 from carotid.mesh.boundary import LABELS, cap_open_ends, check_surface, edge_faces, label_flat_caps
 from carotid.mesh.core import CORES
 from carotid.mesh.io import write_mesh
 from carotid.mesh.mesher import build_mesh, median_edge
 from carotid.mesh.repair import remesh_wall, surface_defects
 from carotid.stages import MeshStageParameters
-from carotid.surface.external import SUFFIXES, check_extent
-from carotid.surface.mesh import face_components, signed_volume
-
-
-def read_surface(path: Path) -> pv.PolyData:
-    """Read a triangle surface file (mm or other units); CarotidError if it is missing, unreadable or has no faces."""
-    data = read_vtk(path, "surface", SUFFIXES)
-    if not isinstance(data, pv.PolyData):
-        data = data.extract_surface(algorithm="dataset_surface")
-    data = data.triangulate()
-    if not data.faces.size:
-        raise CarotidError(f"{path}: the surface has no faces ({data.n_points} points, no triangles or polygons)")
-    return data
+from carotid.surface.external import check_extent, main_piece, read_surface
+from carotid.surface.mesh import compact, signed_volume
 
 
 def external_surface(poly: pv.PolyData, scale: float | None = None) -> pv.PolyData:
@@ -63,17 +52,21 @@ def external_surface(poly: pv.PolyData, scale: float | None = None) -> pv.PolyDa
     CarotidError
         Non-positive scale, a surface spanning less than 0.5 mm (metres given
         as mm) or more than 1000 mm (micrometres), a flat surface, one of
-        several pieces, or one with holes that flat caps do not close.
+        several comparable pieces (``carotid.surface.external.main_piece``), or one with holes that flat caps
+        do not close.
     """
     poly = poly.triangulate().clean()
     if scale is not None:
         if not scale > 0:
             raise CarotidError(f"--scale {scale} must be positive")
         poly.points = np.asarray(poly.points) * float(scale)
+    keep = main_piece(np.asarray(poly.points, float), poly.regular_faces)
+    if not keep.all():
+        points, faces = compact(np.asarray(poly.points, float), poly.regular_faces[keep])
+        labels = {LABELS: np.asarray(poly.cell_data[LABELS])[keep]} if LABELS in poly.cell_data else {}
+        poly = pv.PolyData(points, np.c_[np.full(len(faces), 3), faces].ravel())
+        poly.cell_data.update(labels)
     check_extent(np.asarray(poly.points, float))
-    pieces = np.unique(face_components(poly.n_points, poly.regular_faces)).size
-    if pieces > 1:
-        raise CarotidError(f"the surface has {pieces} separate pieces; a lumen is one: keep the lumen's piece only")
     _, _, counts = edge_faces(poly.regular_faces)
     if (counts == 1).any():
         capped = cap_open_ends(poly)

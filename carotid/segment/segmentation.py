@@ -361,8 +361,19 @@ class Segmentation:
     calcium: Volume | None = None
 
 
+# Voxel sizes the segmentation accepts, mm: angiography spans about 0.1-5 mm, specimen micro-CT 0.01 mm; outside
+# this range the size is in the wrong unit (metres, micrometres) and the millimetre kernels would span
+# millions of voxels or none.
+VOXEL_MM = (0.01, 20.0)
+
+
 def check_image(volume: Volume) -> None:
-    """Raise CarotidError for images no segmentation can use: NaN/inf voxels or a constant image."""
+    """Raise CarotidError for images no segmentation can use: a voxel size outside ``VOXEL_MM``, NaN/inf voxels
+    or a constant image."""
+    low, high = VOXEL_MM
+    if not all(low <= s <= high for s in volume.spacing):
+        raise CarotidError(f"voxel size {' x '.join(f'{s:g}' for s in volume.spacing)} mm is outside {low:g}-{high:g} "
+                           "mm: is the spacing in another unit (metres, micrometres)? Correct the image's header")
     array = volume.array
     bad = np.count_nonzero(~np.isfinite(array))
     if bad:

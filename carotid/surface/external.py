@@ -1,8 +1,8 @@
 """Lumen surfaces made by other tools (STL, VTP, VTK, OBJ, PLY), closed or open-ended, and their level set.
 
-The surface is cleaned (duplicate points merged), reduced to its largest component and checked for
-2-manifoldness; open ends (boundary loops, as left by tools that do not cap) are closed by planar caps
-so that inside and outside are defined.  ``levelset_from_surface`` samples the signed distance on a
+The surface is cleaned (duplicate points merged), reduced to its main piece (specks dropped with a warning,
+comparable pieces refused: ``main_piece``) and checked for 2-manifoldness; open ends (boundary loops, as
+left by tools that do not cap) are closed by planar caps so that inside and outside are defined.  ``levelset_from_surface`` samples the signed distance on a
 regular grid: the sign from VTK's scan conversion (vtkPolyDataToImageStencil through pyvista), the
 distance exact (to the nearest triangle, ``carotid.surface.project``) near the surface and from
 scipy's Euclidean distance transform further away, which the centerline stage then
@@ -13,6 +13,7 @@ stage can keep them instead of clipping the ends again.
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -21,12 +22,14 @@ from scipy import ndimage
 from scipy.optimize import linear_sum_assignment
 
 from carotid.centerline.model import Centerlines
-from carotid.errors import CarotidError
+from carotid.centerline.skeleton import FRAGMENT_FRACTION
+from carotid.errors import CarotidError, CarotidWarning
 from carotid.io import Volume
 from carotid.io.vtkfile import read_vtk
 from carotid.mesh.boundary import INLET, label_flat_caps
 from carotid.surface.clip import planar_cap
-from carotid.surface.mesh import WALL, boundary_loops, from_polydata, largest_component, signed_volume, to_polydata
+from carotid.surface.mesh import (WALL, boundary_loops, compact, face_areas, face_components, from_polydata,
+                                  signed_volume, to_polydata)
 from carotid.surface.project import TriangleProjector
 from carotid.surface.quality import manifold_report, self_intersections
 
@@ -69,6 +72,69 @@ def check_extent(points: np.ndarray, where: str = "") -> None:
     if thickness < FLAT_RATIO * extent:
         raise CarotidError(f"{where}the surface is flat ({thickness:.3g} mm thick across its thinnest direction, "
                            f"{extent:.3g} mm long): a lumen surface encloses a volume; export it in 3-D")
+
+
+def read_surface(path: Path) -> pv.PolyData:
+    """A triangle surface file (``SUFFIXES``; a volume mesh gives its boundary), in its own units.
+
+    Raises
+    ------
+    CarotidError
+        If the file is missing, unreadable or not a surface file (:func:`carotid.io.vtkfile.read_vtk`), or has
+        no faces.
+    """
+    data = read_vtk(path, "surface", SUFFIXES)
+    if not isinstance(data, pv.PolyData):
+        data = data.extract_surface(algorithm="dataset_surface")
+    data = data.triangulate()
+    if not data.faces.size:
+        raise CarotidError(f"{path}: the surface has no faces ({data.n_points} points, no triangles or polygons)")
+    return data
+
+
+def main_piece(points: np.ndarray, faces: np.ndarray, where: str = "") -> np.ndarray:
+    """The faces of the piece of a surface with the largest area; the other pieces may only be debris.
+
+    Exports from segmentation tools often carry specks beside the lumen.  Pieces holding together more than
+    ``FRAGMENT_FRACTION`` of the whole area (the segmentation's fragment rule,
+    :func:`carotid.centerline.skeleton.largest_component`) are another vessel or a lumen cut in two, which no
+    choice here would get right.  Only ratios of areas are compared, so the units do not matter.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+    faces : ndarray of int, shape (m, 3)
+    where : str
+        Prefix of the messages (the file, ``"path: "``), or empty.
+
+    Returns
+    -------
+    ndarray of bool, shape (m,)
+        The faces of the largest piece.
+
+    Raises
+    ------
+    CarotidError
+        When the other pieces hold more than ``FRAGMENT_FRACTION`` of the area.
+
+    Warns
+    -----
+    CarotidWarning
+        When smaller pieces are dropped: how many and their share of the area.
+    """
+    comp = face_components(len(points), faces)
+    areas = np.bincount(comp, weights=face_areas(points, faces))
+    largest = int(np.argmax(areas))
+    others, dropped = len(areas) - 1, 1.0 - areas[largest] / areas.sum()
+    if dropped > FRAGMENT_FRACTION:
+        shares = np.sort(areas)[::-1] / areas[largest]
+        raise CarotidError(f"{where}the surface has {len(areas)} separate pieces, the next largest "
+                           f"{', '.join(f'{100 * a:.0f}' for a in shares[1:4])}{', ...' if others > 3 else ''} % of "
+                           "the largest one's area; a lumen is one: keep the lumen's piece only")
+    if others:
+        warnings.warn(f"{where}{others} small separate piece{'s' if others > 1 else ''} dropped "
+                      f"({100 * dropped:.2g} % of the surface's area)", CarotidWarning, stacklevel=2)
+    return comp == largest
 
 
 def _close_loops(points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
@@ -124,18 +190,13 @@ def load_external_surface(path: str | Path, scale: float | None = None) -> tuple
         or folded rims), or open ends that are not simple loops.
     """
     path = Path(path)
-    mesh = read_vtk(path, "surface", SUFFIXES)
-    if not isinstance(mesh, pv.PolyData):
-        mesh = mesh.extract_surface()
-    mesh = mesh.triangulate().clean(tolerance=1e-9, absolute=False)
-    if not mesh.faces.size:
-        raise CarotidError(f"{path}: the file holds no triangles")
+    mesh = read_surface(path).clean(tolerance=1e-9, absolute=False)
     points, faces, _ = from_polydata(pv.PolyData(mesh.points, mesh.faces))
     if scale is not None:
         if not scale > 0:
             raise CarotidError(f"--scale {scale} must be positive")
         points = points * float(scale)
-    points, faces, _ = largest_component(points, faces)
+    points, faces = compact(points, faces[main_piece(points, faces, f"{path}: ")])
     check_extent(points, f"{path}: ")
     report = manifold_report(len(points), faces)
     if report["nonmanifold_edges"] or report["nonmanifold_vertices"]:
