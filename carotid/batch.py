@@ -2,9 +2,10 @@
 
 Each stage of a case is a Dask task, submitted when the case's previous
 stage has finished (``_drive``), so different cases run side by side and
-every stage goes to whichever worker frees up first.  Bad input (``CarotidError``) fails its case at once with the
-reason and is not retried; any other exception is retried (``retries``)
-as possibly transient, and fails the case if it persists.  One failed case
+every stage goes to whichever worker frees up first.  Bad input
+(``CarotidError``) fails its case at once with the reason and is not
+retried; any other exception is retried (``retries``) as possibly
+transient, and fails the case if it persists.  One failed case
 never stops the others.  Every stage goes through ``pipeline.run_stage``, so
 finished stages are skipped when a batch is run again.  While it runs, a line
 reports each finished case and, at least every ``PROGRESS_SECONDS``, the cases

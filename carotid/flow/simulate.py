@@ -170,8 +170,9 @@ class FlowParameters:
             from carotid.flow.duplex import check_doppler
 
             check_doppler(*self.doppler_cca)
-        if self.waveform is not None and not self.waveform.mean_m3s > 0:  # the physiological bounds of
-            # check_inflow apply to user input only: the verification cases run small tubes on short periods
+        # The sign only: the physiological bounds of check_inflow hold the user's input (a waveform file, a
+        # steady flow), not the API's, whose verification cases run small tubes on short periods.
+        if self.waveform is not None and not self.waveform.mean_m3s > 0:
             raise CarotidError(f"the inlet waveform's mean flow is {self.waveform.mean_m3s * 1e6:.3g} mL/s: blood "
                                "must enter through the CCA inlet on average (check the sign of the flow column)")
         return self

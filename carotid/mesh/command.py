@@ -7,8 +7,8 @@ a labelled closed surface is used as is, an open one gets a planar cap per
 boundary loop, an unlabelled closed one gets its flat end caps detected.
 The file must be in mm (``--scale 1000`` for metres, ``--scale 0.001`` for
 micrometres: a surface spanning less than 0.5 or more than 1000 units is
-refused, and so is a flat one or one of several pieces of comparable size; specks beside the lumen are
-dropped with a warning).  A surface with
+refused, and so is a flat one or one of several pieces of comparable size;
+specks beside the lumen are dropped with a warning).  A surface with
 self-intersecting or needle triangles has its wall remeshed in place first
 (``carotid.mesh.repair``).
 With ``--from-surface`` the case folder also gets the surface that was meshed
