@@ -437,7 +437,8 @@ def test_the_stage_reruns_a_blown_up_split_with_rcr_outlets_and_says_so(tmp_path
                                    "reason": "blew up at step 3 (t = 0.00300 s): |u| = 12 m/s at [1.0, 2.0, 3.0] mm"}
     failed = [c for c in quality_checks({}, {}, {}, summary) if not c.passed]
     assert [(c.quantity, c.value) for c in failed] == [
-        ("outlet model as configured (no RCR fallback after a blow-up)", "rcr after split blew up")]
+        ("outlet model as configured (no RCR fallback after a blow-up)",
+         "rcr, since split blew up at step 3 (t = 0.00300 s): |u| = 12 m/s at [1.0, 2.0, 3.0] mm")]
     # interrupted during the fallback: the marker for this section and mesh sends the rerun straight to RCR
     marker = {"key": {"params": json.loads(json.dumps(section)), "mesh": file_hash(mesh)},
               "fallback": outlets["fallback"]}

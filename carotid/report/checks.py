@@ -126,7 +126,7 @@ def quality_checks(segmentation: dict, surface: dict, mesh: dict, flow: dict) ->
     fallback = _get(flow, "outlets.fallback")
     if fallback:  # the configured prescribed split blew up and the stage reran with RCR outlets
         checks.append(Check("flow", "outlet model as configured (no RCR fallback after a blow-up)",
-                            f"rcr after {fallback['from']} blew up", "as configured", False))
+                            f"rcr, since {fallback['from']} {fallback['reason']}", "as configured", False))
     periodic = flow.get("periodic") or {}
     if periodic.get("status") in ("periodic", "not periodic"):  # "not assessed": no tolerance or under two cycles
         checks.append(Check("flow", "TAWSS change of the last cycle from the previous (L2, relative)",
