@@ -34,6 +34,9 @@ def _stage_schema(name: str):
 
 
 # Config section -> callable returning the stage's parameter dataclass (imported lazily).
+# Keys whose values are files: relative paths in a TOML file are taken from the file's folder.
+FILE_KEYS = (("simulate", "waveform"), ("simulate", "probes_file"))
+
 SCHEMAS = {
     "segment": _segment_schema,
     "centerlines": _stage_schema("CenterlineStageParameters"),
@@ -103,7 +106,7 @@ class Config:
 
     @classmethod
     def from_toml(cls, path: str | Path) -> "Config":
-        """Read and validate a TOML file."""
+        """Read and validate a TOML file; the files it names (``FILE_KEYS``) are relative to its folder."""
         path = Path(path)
         try:
             data = tomllib.loads(path.read_text())
@@ -113,6 +116,10 @@ class Config:
             raise CarotidError(f"{path}: cannot read the config file ({exc.strerror})") from None
         except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
             raise CarotidError(f"{path}: not valid TOML ({exc})") from None
+        for section, key in FILE_KEYS:  # a file named in the config lies beside it, wherever the run starts
+            value = data.get(section, {}).get(key) if isinstance(data.get(section), dict) else None
+            if isinstance(value, str) and value and not Path(value).is_absolute():
+                data[section][key] = str(path.parent / value)
         return cls(data)
 
     def section(self, name: str) -> dict:

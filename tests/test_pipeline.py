@@ -75,6 +75,23 @@ def test_config_rejects_bad_values(overrides, message):
         Config(overrides)
 
 
+def test_files_named_in_a_config_are_found_beside_it_wherever_the_run_starts(tmp_path, monkeypatch):
+    """A per-case config with its own waveform and probe files (``waveform = "flow.csv"``) works from any
+    working directory, as a manifest's per-case configs must; absolute paths are kept."""
+    case = tmp_path / "patient"
+    case.mkdir()
+    (case / "flow.csv").write_text("time,flow\n0,6\n0.2,9\n0.4,8\n0.6,7\n0.9,6\n")
+    (case / "probes.csv").write_text("x,y,z\n1,2,3\n")
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (case / "config.toml").write_text(f'[simulate]\nwaveform = "flow.csv"\nprobes_file = "{case / "probes.csv"}"\n')
+    monkeypatch.chdir(elsewhere)
+    simulate = Config.from_toml(case / "config.toml").section("simulate")
+    assert simulate["waveform"] == str(case / "flow.csv") and simulate["probes_file"] == str(case / "probes.csv")
+    with pytest.raises(CarotidError, match="flow.csv"):  # a dict has no folder: relative to the working directory
+        Config({"simulate": {"waveform": "flow.csv"}})
+
+
 def test_a_config_folder_and_a_case_record_that_is_not_one_are_clear_errors(tmp_path):
     from carotid.pipeline import read_case
 
