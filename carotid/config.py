@@ -33,10 +33,10 @@ def _stage_schema(name: str):
     return schema
 
 
-# Config section -> callable returning the stage's parameter dataclass (imported lazily).
 # Keys whose values are files: relative paths in a TOML file are taken from the file's folder.
 FILE_KEYS = (("simulate", "waveform"), ("simulate", "probes_file"))
 
+# Config section -> callable returning the stage's parameter dataclass (imported lazily).
 SCHEMAS = {
     "segment": _segment_schema,
     "centerlines": _stage_schema("CenterlineStageParameters"),
