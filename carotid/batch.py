@@ -8,7 +8,8 @@ retried; any other exception is retried (``retries``) as possibly
 transient, and fails the case if it persists.  One failed case
 never stops the others.  Every stage goes through ``pipeline.run_stage``, so
 finished stages are skipped when a batch is run again.  While it runs, a line
-reports each finished case and, at least every ``PROGRESS_SECONDS``, the cases
+reports each finished case (with the quality checks that failed) and, at
+least every ``PROGRESS_SECONDS``, the cases
 finished, failed, running and waiting with the elapsed time and an ETA.  The
 outcome is ``OUT_DIR/cohort.csv``, one row per case, numbers to
 ``SIGNIFICANT_DIGITS`` significant digits, and ``OUT_DIR/cohort.json``
@@ -392,11 +393,21 @@ def _submit(client, case: Case, out_dir: Path, index: int, previous: dict | None
                          retries=retries, pure=False, priority=index)
 
 
-def _drive(client, cases: list[Case], out_dir: Path, retries: int, log: Callable[[str], None],
-           every: float) -> dict:
-    """Run every case's stages in order, logging each case that ends and, at least every ``every`` seconds, the
-    cases done, failed, running (a stage of theirs on a worker) and waiting, the elapsed time and an ETA
-    extrapolated from the fraction of stage tasks finished.
+def _ended_line(row: dict) -> str:
+    """What the progress line says of a case that ended, from its ``cohort.csv`` row: ``done``, with the
+    quality checks that failed, or where and why it failed."""
+    if row["status"] != "ok":
+        return f"failed at {row['failed_stage'] or 'an unexpected error'}: {row['reason']}"
+    count = row["checks_failed"]
+    return "done" + (f"; {count} quality check{'s' if count > 1 else ''} failed: {row['failed_checks']}"
+                     if count else "")
+
+
+def _drive(client, cases: list[Case], out_dir: Path, retries: int, log: Callable[[str], None], every: float,
+           ended: Callable[[Case, dict], str]) -> dict:
+    """Run every case's stages in order, logging each case that ends (``batch: <id> <ended(case, outcome)>``)
+    and, at least every ``every`` seconds, the cases done, failed, running (a stage of theirs on a worker) and
+    waiting, the elapsed time and an ETA extrapolated from the fraction of stage tasks finished.
 
     Each stage is submitted when the case's previous stage has finished, with that stage's small outcome as a
     value, not as a Dask dependency: the scheduler places a task on a worker holding its dependencies, which
@@ -419,7 +430,7 @@ def _drive(client, cases: list[Case], out_dir: Path, retries: int, log: Callable
             wait([future for _, _, future in current.values()], timeout=every, return_when="FIRST_COMPLETED")
         except TimeoutError:
             pass
-        ended = []
+        just_ended = []
         for case_id, (case, index, future) in list(current.items()):
             if future.status == "pending":
                 continue
@@ -431,12 +442,10 @@ def _drive(client, cases: list[Case], out_dir: Path, retries: int, log: Callable
             total -= len(STAGE_NAMES) - 1 - index  # the stages a failed case does not run
             del current[case_id]
             outcomes[case_id] = outcome
-            ended.append(case_id)
-            log(f"batch: {case_id} " + ("done" if outcome["status"] == "ok" else
-                                        f"failed at {outcome['failed_stage'] or 'an unexpected error'}: "
-                                        f"{outcome['reason']}"))
+            just_ended.append(case_id)
+            log(f"batch: {case_id} {ended(case, outcome)}")
         now = time.monotonic()
-        if ended or now - last >= every:
+        if just_ended or now - last >= every:
             running = {str(key).split("/")[0] for keys in client.processing().values() for key in keys} - set(outcomes)
             failed = sum(outcome["status"] != "ok" for outcome in outcomes.values())
             fraction = finished / total
@@ -468,8 +477,8 @@ def run_batch(manifest: str | Path, out_dir: str | Path, *, scheduler: str | Non
     config : path, optional
         TOML config for every case without its own.
     log : callable
-        Receives the progress lines (default: printed on stderr at once): one per case that ends and a
-        summary at least every ``PROGRESS_SECONDS``.
+        Receives the progress lines (default: printed on stderr at once): one per case that ends (with the
+        quality checks that failed) and a summary at least every ``PROGRESS_SECONDS``.
 
     Returns
     -------
@@ -492,8 +501,14 @@ def run_batch(manifest: str | Path, out_dir: str | Path, *, scheduler: str | Non
                                                       dashboard_address=None, silence_logs=logging.CRITICAL)
         with Client(scheduler or cluster) as client:
             log(f"batch: {len(cases)} cases, {len(cases) * len(STAGE_NAMES)} stage tasks")
-            outcomes = _drive(client, cases, out_dir, retries, log, PROGRESS_SECONDS)
-            rows = [case_summary(case, out_dir / case.case_id, outcomes[case.case_id]) for case in cases]
+            rows = {}
+
+            def ended(case: Case, outcome: dict) -> str:
+                rows[case.case_id] = case_summary(case, out_dir / case.case_id, outcome)
+                return _ended_line(rows[case.case_id])
+
+            _drive(client, cases, out_dir, retries, log, PROGRESS_SECONDS, ended)
+            rows = [rows[case.case_id] for case in cases]
         if cluster is not None:
             cluster.close()
     finally:

@@ -280,10 +280,28 @@ def test_batch_isolates_a_corrupt_case(small_image, tmp_path, capsys, monkeypatc
         assert 0 <= float(row["low_tawss_area_fraction"]) <= 1
         assert 0 <= float(row["nascet"]) < 1  # a fraction, as in geometry.json (phantom0's true NASCET is 5 %)
         assert row["stenosis_branch"] == "ICA"
+    for name in images:  # each case's line names the quality checks that its row says failed
+        line = next(line for line in progress if line.startswith(f"batch: {name} done"))
+        failed = int(rows[name]["checks_failed"])
+        assert line == f"batch: {name} done" + (f"; {failed} quality check{'s' if failed > 1 else ''} failed: "
+                                               f"{rows[name]['failed_checks']}" if failed else "")
     assert rows["broken"]["status"] == "failed" and rows["broken"]["failed_stage"] == "segment"
     assert "cannot be read as an image" in rows["broken"]["reason"]
     assert not (out / "broken").exists()
     assert len(submitted) == 4 * len(STAGE_NAMES) + 1 and not any(submitted)
+
+
+def test_the_line_of_a_case_that_ends_says_what_to_doubt():
+    from carotid.batch import _ended_line
+
+    row = {"status": "ok", "failed_stage": "", "reason": "", "checks_failed": 2,
+           "failed_checks": "mesh: largest dihedral angle, wall layers (deg); flow: outlet model as configured "
+                            "(no RCR fallback after a blow-up)"}
+    assert _ended_line(row) == ("done; 2 quality checks failed: mesh: largest dihedral angle, wall layers (deg); "
+                                "flow: outlet model as configured (no RCR fallback after a blow-up)")
+    assert _ended_line({**row, "checks_failed": 0, "failed_checks": ""}) == "done"
+    assert _ended_line({**row, "status": "failed", "failed_stage": "simulate", "reason": "it blew up"}) == (
+        "failed at simulate: it blew up")
 
 
 def test_bad_manifest_is_one_clear_error(tmp_path, capsys):
