@@ -501,14 +501,14 @@ def run_batch(manifest: str | Path, out_dir: str | Path, *, scheduler: str | Non
                                                       dashboard_address=None, silence_logs=logging.CRITICAL)
         with Client(scheduler or cluster) as client:
             log(f"batch: {len(cases)} cases, {len(cases) * len(STAGE_NAMES)} stage tasks")
-            rows = {}
+            by_case = {}
 
             def ended(case: Case, outcome: dict) -> str:
-                rows[case.case_id] = case_summary(case, out_dir / case.case_id, outcome)
-                return _ended_line(rows[case.case_id])
+                by_case[case.case_id] = case_summary(case, out_dir / case.case_id, outcome)
+                return _ended_line(by_case[case.case_id])
 
             _drive(client, cases, out_dir, retries, log, PROGRESS_SECONDS, ended)
-            rows = [rows[case.case_id] for case in cases]
+            rows = [by_case[case.case_id] for case in cases]
         if cluster is not None:
             cluster.close()
     finally:

@@ -117,9 +117,10 @@ class Config:
         except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
             raise CarotidError(f"{path}: not valid TOML ({exc})") from None
         for section, key in FILE_KEYS:  # a file named in the config lies beside it, wherever the run starts
-            value = data.get(section, {}).get(key) if isinstance(data.get(section), dict) else None
+            table = data.get(section)
+            value = table.get(key) if isinstance(table, dict) else None
             if isinstance(value, str) and value and not Path(value).is_absolute():
-                data[section][key] = str(path.parent / value)
+                table[key] = str(path.parent / value)
         return cls(data)
 
     def section(self, name: str) -> dict:

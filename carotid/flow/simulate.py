@@ -172,9 +172,10 @@ class FlowParameters:
             check_doppler(*self.doppler_cca)
         # The sign only: the physiological bounds of check_inflow hold the user's input (a waveform file, a
         # steady flow), not the API's, whose verification cases run small tubes on short periods.
-        if self.waveform is not None and not self.waveform.mean_m3s > 0:
-            raise CarotidError(f"the inlet waveform's mean flow is {self.waveform.mean_m3s * 1e6:.3g} mL/s: blood "
-                               "must enter through the CCA inlet on average (check the sign of the flow column)")
+        if self.waveform is not None:
+            from carotid.flow.waveform import ML, check_inflow_sign
+
+            check_inflow_sign(self.waveform.mean_m3s / ML, "the inlet waveform")
         return self
 
     def fingerprint(self, waveform, mesh: FlowMesh) -> str:

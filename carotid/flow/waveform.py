@@ -44,16 +44,22 @@ MIN_MEAN_FLOW_ML = 0.01
 adaptive time step, set by the inflow speed, spans a whole cycle, so the run resolves nothing."""
 
 
+def check_inflow_sign(mean_ml_s: float, source: str) -> None:
+    """Raise CarotidError unless the mean flow (mL/s) enters through the inlet; ``source`` names the input."""
+    if not mean_ml_s > 0:
+        raise CarotidError(f"{source}: the mean flow is {mean_ml_s:.3g} mL/s: blood must enter through the CCA "
+                           "inlet on average (check the sign of the flow column)")
+
+
 def check_inflow(period_s: float, mean_ml_s: float, source: str) -> None:
-    """Raise CarotidError unless the period (s) lies in ``PERIOD_RANGE_S`` and the mean flow (mL/s) is at least
-    ``MIN_MEAN_FLOW_ML``; ``source`` names the input in the message."""
+    """Raise CarotidError unless the period (s) lies in ``PERIOD_RANGE_S`` and the mean flow (mL/s) enters
+    (:func:`check_inflow_sign`) and is at least ``MIN_MEAN_FLOW_ML``; ``source`` names the input in the
+    message."""
     low, high = PERIOD_RANGE_S
     if not low <= period_s <= high:
         raise CarotidError(f"{source}: a cardiac period of {period_s:g} s is outside {low:g}-{high:g} s (heart rates "
                            "of 12-300 per minute): check the time column, which is in seconds")
-    if not mean_ml_s > 0:
-        raise CarotidError(f"{source}: the mean flow is {mean_ml_s:.3g} mL/s: blood must enter through the CCA "
-                           "inlet on average (check the sign of the flow column)")
+    check_inflow_sign(mean_ml_s, source)
     if not mean_ml_s >= MIN_MEAN_FLOW_ML:
         raise CarotidError(f"{source}: a mean flow of {mean_ml_s:.3g} mL/s is below {MIN_MEAN_FLOW_ML:g} mL/s (a "
                            "carotid carries 2-20 mL/s; the adaptive time step would span the whole cycle): check the "

@@ -66,7 +66,7 @@ def check_core_size(surface: Surface, size: float) -> None:
     volume = abs(signed_volume(surface.points, surface.triangles))
     estimate = volume / regular_tet_volume(size)
     if estimate > MAX_CORE_TETRAHEDRA:
-        fit = 1.05 * (6.0 * np.sqrt(2.0) * volume / MAX_CORE_TETRAHEDRA) ** (1.0 / 3.0)  # 1.05: .2g rounds within 5%
+        fit = 1.05 * size * (estimate / MAX_CORE_TETRAHEDRA) ** (1.0 / 3.0)  # 1.05: .2g rounds within 5%
         raise CarotidError(f"a core element size of {size:g} mm would make about {estimate:.2g} tetrahedra in the "
                            f"{volume:.4g} mm^3 lumen, over the {MAX_CORE_TETRAHEDRA:.0e} limit: use a size of at "
                            f"least {fit:.2g} mm (--size, [mesh] size_mm)")
