@@ -91,6 +91,42 @@ def test_a_vessel_beyond_a_throat_is_not_a_companion(monkeypatch):
     assert np.count_nonzero(found[1] & beyond) > 0.5 * np.count_nonzero(found[1])
 
 
+def two_throats(z):
+    """Radius (mm) of an artery of 3 mm narrowed to 1.2 mm at two raised-cosine throats, z = -6 and +6 mm."""
+    def bump(centre):
+        return np.where(np.abs(z - centre) < 3.0, 0.5 * (1 + np.cos(np.pi * (z - centre) / 3.0)), 0.0)
+    return 3.0 - 1.8 * (bump(-6.0) + bump(6.0))
+
+
+def test_a_segment_between_two_seeds_is_not_a_companion():
+    """The artery of ``two_throats``, seeded at both ends: the blur cuts it into three basins in a row.  With
+    the direction test switched off (every touching basin taken, as when the axis is read across a kink), the
+    middle segment joins the two seeds' basins and stays in the vessel.  Seeded at one end only, the same
+    segment is taken: it is the link between seeds, not the direction, that keeps it."""
+    image = blurred(cylinder(0.0, 3.0, radius_along=two_throats))
+    captured = ndimage.gaussian_filter(image, 1.0) > 0.4
+    assert ndimage.label(captured)[1] == 1
+    seeds = np.vstack([seed_at(0.0, z=-15.0), seed_at(0.0, z=15.0)])
+    middle = np.zeros(SHAPE, bool)
+    middle[int(SHAPE[0] / 2 - 4 / SPACING[0]):int(SHAPE[0] / 2 + 4 / SPACING[0])] = True
+    one = companion_basins(captured, image, seeds[:1], SPACING, across=1.01)
+    assert one is not None, "premise: the middle segment is a basin of its own"
+    assert np.count_nonzero(one[1] & middle) > 0.9 * np.count_nonzero(captured & middle)
+    assert companion_basins(captured, image, seeds, SPACING, across=1.01) is None
+
+
+def test_a_vein_beside_an_artery_seeded_at_both_ends_is_still_a_companion():
+    """The vein of ``test_a_vein_beside_the_artery_is_a_companion`` with the artery seeded at both ends: the
+    artery joins its seeds without the vein, so the vein links nothing and stays out."""
+    artery, vein = cylinder(-3.3, 3.0), cylinder(3.5, 3.5, 0.9)
+    image = blurred(np.maximum(artery, vein))
+    captured = ndimage.gaussian_filter(image, 1.0) > 0.5
+    seeds = np.vstack([seed_at(-3.3, z=-15.0), seed_at(-3.3, z=15.0)])
+    found = companion_basins(captured, image, seeds, SPACING)
+    assert found is not None
+    assert np.count_nonzero(found[1] & (vein > 0.5)) > 0.8 * np.count_nonzero(found[1])
+
+
 def test_companions_need_a_dip():
     """Without a dip between them (the two tubes fused, no gap), there is one basin and no companion."""
     fused = np.maximum(cylinder(-3.0, 3.0), cylinder(2.5, 3.5, 1.0))

@@ -271,7 +271,10 @@ def companion_basins(region: np.ndarray, contrast: np.ndarray, seeds_kji: np.nda
     of its Hessian whose eigenvalue is nearest zero), read on a grid of ``tube_mm / 2``; the surface's
     normal is the gradient of its basin's smoothed indicator.  A basin without a seed, touching the seeds'
     basins, of at least ``min_volume_mm3``, whose surface with them has a median ``|normal . axis|`` below
-    ``across`` is a companion.
+    ``across`` is a companion, unless it joins seeds that the region holds apart without it
+    (``links_seeds``): a neighbour lies beside the seeds' vessel, never between two of its seeds, while the
+    axis read across a kink (a segment of the vessel running across the slices between two seeds, under a
+    bias field that dims it into a basin of its own) is not the vessel's.
 
     Parameters
     ----------
@@ -335,12 +338,40 @@ def companion_basins(region: np.ndarray, contrast: np.ndarray, seeds_kji: np.nda
         normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), np.float32(1e-6))
         if np.median(np.abs(np.einsum("ni,ni->n", normal, axis[sub][surface]))) < across:
             found.append(basin)
+    found = [basin for basin in found if not links_seeds(basins, found, basin, starts)]
     if not found:
         return None
     vessel, companions = np.zeros(region.shape, bool), np.zeros(region.shape, bool)
     vessel[box] = seeded
     companions[box] = np.isin(basins, found)
     return vessel, companions
+
+
+def links_seeds(basins: np.ndarray, companions: list[int], basin: int, starts: list[tuple[int, int, int]]) -> bool:
+    """Whether ``basin`` joins seeds that the labelled region holds apart once every one of ``companions`` is
+    taken out.
+
+    Parameters
+    ----------
+    basins : ndarray of int, shape (nk, nj, ni)
+        Basin labels of the region (0 outside it).
+    companions : list of int
+        Basins taken for companions, ``basin`` among them.
+    basin : int
+    starts : list of tuple
+        The seeds' voxels (indices into ``basins``), each in a basin that is not a companion.
+
+    Returns
+    -------
+    bool
+        True when the seeds lie in fewer connected pieces (face connectivity, as the lumen's pieces are
+        counted) with ``basin`` than without it.
+    """
+    def pieces(out: list[int]) -> int:
+        labels, _ = ndimage.label((basins > 0) & ~np.isin(basins, out))
+        return len({int(labels[start]) for start in starts} - {0})
+
+    return pieces([b for b in companions if b != basin]) < pieces(companions)
 
 
 def tube_axes(contrast: np.ndarray, spacing_kji, scale_mm: float, points: tuple) -> np.ndarray:
