@@ -174,10 +174,11 @@ def test_lumen_level_is_followed_along_a_fading_bolus():
 
 
 def test_a_kinked_ica_under_an_mr_bias_field_stays_one_piece(monkeypatch):
-    """Family case 71 (MR angiogram, kinked ICA, a 39 % bias field): the field dims the kink, which runs
-    across the slices between the CCA and ICA seeds, into a basin of its own whose surface with the vessel
-    reads as facing across it.  A companion may not join seeds (``barrier.links_seeds``): taken for one, the
-    kink was cut out and the ICA's seed left in a piece of its own (Dice 0.88)."""
+    """Family case 71 (MR angiogram, kinked ICA, a 39 % bias field): the kink, which runs across the slices
+    between the CCA and ICA seeds, is a basin of the captured region's contrast of its own, and the axis
+    read across it makes its surface with the vessel face across.  A companion may not join seeds
+    (``barrier.links_seeds``): taken for one, the kink was cut out and the ICA's seed left in a piece of its
+    own (Dice 0.88)."""
     from carotid.segment import barrier
 
     p = make_phantom(**sample_family(71))

@@ -272,9 +272,9 @@ def companion_basins(region: np.ndarray, contrast: np.ndarray, seeds_kji: np.nda
     normal is the gradient of its basin's smoothed indicator.  A basin without a seed, touching the seeds'
     basins, of at least ``min_volume_mm3``, whose surface with them has a median ``|normal . axis|`` below
     ``across`` is a companion, unless it joins seeds that the region holds apart without it
-    (``links_seeds``): a neighbour lies beside the seeds' vessel, never between two of its seeds, while the
-    axis read across a kink (a segment of the vessel running across the slices between two seeds, under a
-    bias field that dims it into a basin of its own) is not the vessel's.
+    (``links_seeds``): a neighbour lies beside the seeds' vessel, never between two of its seeds, while a
+    kink of the vessel between two seeds can be a basin of its own, and the axis read across a kink is not
+    the vessel's.
 
     Parameters
     ----------
