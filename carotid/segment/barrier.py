@@ -272,7 +272,7 @@ def companion_basins(region: np.ndarray, contrast: np.ndarray, seeds_kji: np.nda
     normal is the gradient of its basin's smoothed indicator.  A basin without a seed, touching the seeds'
     basins, of at least ``min_volume_mm3``, whose surface with them has a median ``|normal . axis|`` below
     ``across`` is a companion, unless it joins seeds that the region holds apart without it
-    (``links_seeds``): a neighbour lies beside the seeds' vessel, never between two of its seeds, while a
+    (``linking_seeds``): a neighbour lies beside the seeds' vessel, never between two of its seeds, while a
     kink of the vessel between two seeds can be a basin of its own, and the axis read across a kink is not
     the vessel's.
 
@@ -338,7 +338,8 @@ def companion_basins(region: np.ndarray, contrast: np.ndarray, seeds_kji: np.nda
         normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), np.float32(1e-6))
         if np.median(np.abs(np.einsum("ni,ni->n", normal, axis[sub][surface]))) < across:
             found.append(basin)
-    found = [basin for basin in found if not links_seeds(basins, found, basin, starts)]
+    links = linking_seeds(basins, found, starts)
+    found = [basin for basin in found if basin not in links]
     if not found:
         return None
     vessel, companions = np.zeros(region.shape, bool), np.zeros(region.shape, bool)
@@ -347,31 +348,31 @@ def companion_basins(region: np.ndarray, contrast: np.ndarray, seeds_kji: np.nda
     return vessel, companions
 
 
-def links_seeds(basins: np.ndarray, companions: list[int], basin: int, starts: list[tuple[int, int, int]]) -> bool:
-    """Whether ``basin`` joins seeds that the labelled region holds apart once every one of ``companions`` is
-    taken out.
+def linking_seeds(basins: np.ndarray, companions: list[int], starts: list[tuple[int, int, int]]) -> set[int]:
+    """The basins of ``companions`` that join seeds the labelled region holds apart once every one of
+    ``companions`` is taken out.
 
     Parameters
     ----------
     basins : ndarray of int, shape (nk, nj, ni)
         Basin labels of the region (0 outside it).
     companions : list of int
-        Basins taken for companions, ``basin`` among them.
-    basin : int
+        Basins taken for companions.
     starts : list of tuple
         The seeds' voxels (indices into ``basins``), each in a basin that is not a companion.
 
     Returns
     -------
-    bool
-        True when the seeds lie in fewer connected pieces (face connectivity, as the lumen's pieces are
-        counted) with ``basin`` than without it.
+    set of int
+        Each companion with which the seeds lie in fewer connected pieces (face connectivity, as the lumen's
+        pieces are counted) than without all of them.
     """
     def pieces(out: list[int]) -> int:
         labels, _ = ndimage.label((basins > 0) & ~np.isin(basins, out))
         return len({int(labels[start]) for start in starts} - {0})
 
-    return pieces([b for b in companions if b != basin]) < pieces(companions)
+    apart = pieces(companions)
+    return {basin for basin in companions if pieces([b for b in companions if b != basin]) < apart}
 
 
 def tube_axes(contrast: np.ndarray, spacing_kji, scale_mm: float, points: tuple) -> np.ndarray:
