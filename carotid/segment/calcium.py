@@ -28,7 +28,11 @@ times an amplitude fitted on its tissue side, is subtracted from the image,
 so that the lumen next to it keeps only its own intensity; the structure
 itself becomes background, except within two blur widths of its edge, where
 what remains after the subtraction (the lumen's own blur, at most half its
-contrast) is kept, so that the lumen's edge stays where the two meet.  In an MR angiogram
+contrast) is kept, so that the lumen's edge stays where the two meet.  On
+request (``depth_cap``) it is kept only up to what the lumen's blur can leave
+at its depth (``lumen_blur_cap``: half the contrast at the edge, a Gaussian
+tail behind it): a nodule a few blur widths across, whose core the fitted
+blur under-subtracts, is then not left at the lumen's half level throughout.  In an MR angiogram
 calcium and bone are dark and nothing lies above the window: nothing changes.
 
 Written here because no library offers this step; the filters are scipy's and
@@ -53,7 +57,7 @@ TISSUE_FRACTION = 0.25
 
 def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: float, spacing_kji,
                     blur_mm: float | None, reach_mm: float = 3.0, sigma_mm: float = 0.5,
-                    balls: bool = False) -> tuple[np.ndarray, np.ndarray, dict]:
+                    balls: bool = False, depth_cap: bool = False) -> tuple[np.ndarray, np.ndarray, dict]:
     """The image with each hyperdense structure (calcium, bone) and its blur replaced by the background.
 
     Parameters
@@ -73,6 +77,9 @@ def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: flo
         voxel, so that single noisy voxels of a coarse scan are not taken for calcium.
     balls : bool
         Place each structure's edge by the blurred-ball model (``edge_fraction(balls=True)``).
+    depth_cap : bool
+        Keep what remains within two blur widths of a structure's edge only up to ``lumen_blur_cap`` at its
+        depth; False: up to the lumen's half level at every depth.
 
     Returns
     -------
@@ -129,16 +136,51 @@ def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: flo
         blurred, amplitude = structure_blur(crop, belongs, n, fraction[wide], owner, background, spacing_kji,
                                             blur_mm)
         # Within a blur width or two of its edge a structure holds its neighbours' blur too (the lumen's, up
-        # to half the contrast at a shared edge): what remains after the subtraction, kept below the half level.
-        rim = np.zeros(image.shape, bool)
-        rim[box] = extent[box] & (ndimage.distance_transform_edt(extent[box], sampling=spacing_kji) < 2.0 * blur_mm)
-        remains = np.clip(crop - blurred, np.float32(background), np.float32(0.5 * (lumen + background)))
+        # to half the contrast at a shared edge): what remains after the subtraction, kept below the half level
+        # or below what the lumen's blur can leave at its depth.
+        depth = np.full(image.shape, np.inf, np.float32)
+        depth[box] = ndimage.distance_transform_edt(extent[box], sampling=spacing_kji)
+        rim = extent & (depth < 2.0 * blur_mm)
+        cap = (lumen_blur_cap(depth[wide], lumen, background, blur_mm, spacing_kji) if depth_cap
+               else np.float32(0.5 * (lumen + background)))
+        remains = np.clip(crop - blurred, np.float32(background), cap)
         local = np.where(inside, np.where(rim[wide], remains, local), crop - blurred)
         amplitude_max = float(amplitude.max())
     out = image.copy()
     out[wide] = local
     volume = float(np.count_nonzero(extent) * np.prod(spacing_kji))
     return out, extent, {"structures": int(n), "volume_mm3": volume, "blur_amplitude_max": amplitude_max}
+
+
+def lumen_blur_cap(depth: np.ndarray, lumen: float, background: float, blur_mm: float,
+                   spacing_kji) -> np.ndarray:
+    """The most the lumen's blur can leave inside a structure at each depth from its edge.
+
+    A lumen filling the whole half-space beyond the structure's nearest edge, blurred by a Gaussian of
+    standard deviation ``blur_mm``, leaves ``B + (A - B) Phi(-d / sigma)`` at a depth ``d`` behind that edge:
+    half the contrast on the edge, 16 % of it one blur width in.  Any real lumen leaves less.  The edge lies
+    within the structure's outermost voxels (``edge_fraction`` places it to a fraction of one), so ``d`` is
+    counted from one voxel of the finest axis in: those voxels keep the half level, and with it the lumen's
+    edge where the two meet.
+
+    Parameters
+    ----------
+    depth : ndarray, float32, shape (nk, nj, ni)
+        Distance (mm) from each voxel inside the structure to the nearest voxel outside it (the Euclidean
+        distance transform).
+    lumen, background : float
+        Lumen level ``A`` and tissue level ``B``.
+    blur_mm : float
+        Standard deviation (mm) of the image's blur.
+    spacing_kji : array_like, shape (3,)
+
+    Returns
+    -------
+    ndarray, float32, ``depth``'s shape
+    """
+    behind = np.maximum(depth - np.float32(float(np.min(spacing_kji))), np.float32(0.0)) / np.float32(blur_mm)
+    return (np.float32(background)
+            + np.float32(lumen - background) * special.ndtr(-behind).astype(np.float32))
 
 
 def in_the_wall(extent: np.ndarray, tissue: np.ndarray, spacing_kji, reach_mm: float) -> np.ndarray:

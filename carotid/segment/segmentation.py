@@ -77,6 +77,12 @@ class SegmentParameters:
         steepest point moved out by the blur's curvature shift, which is right for structures much wider than
         the blur and puts the edge of a 1 mm nodule 0.4-0.65 mm into the lumen.  Off: the tight throats beside
         a nodule then read wider (``benchmarks/README.md``).
+    calcium_depth_cap : bool
+        Keep what the subtraction of a hyperdense structure's blur leaves within two blur widths of its edge
+        only up to what the lumen's blur can leave at that depth (``calcium.lumen_blur_cap``), instead of up
+        to the lumen's half level at every depth, which a nodule a few blur widths across, its core
+        under-subtracted, holds throughout and the front may take for lumen.  Off: not yet run through every
+        benchmark (``benchmarks/README.md``).
     barrier : float
         Half level of the barrier (``barrier.half_level_barrier``): voxels darker than this fraction of the
         brightest lumen-like value within ``barrier_reach_mm`` push the front out (a blurred gap to an enhancing
@@ -220,6 +226,7 @@ class SegmentParameters:
     fold: float = 0.0
     calcium_edge: bool = True
     calcium_balls: bool = False
+    calcium_depth_cap: bool = False
     barrier: float = 0.5
     barrier_reach_mm: float = 3.0
     plateau: float = 0.8
@@ -754,7 +761,8 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
     hyperdense, dense = None, None
     if params.calcium_edge:
         image, dense, hyperdense = hyperdense_edge(image, window[1], model.lumen, model.background, spacing,
-                                                   model.blur, balls=params.calcium_balls)
+                                                   model.blur, balls=params.calcium_balls,
+                                                   depth_cap=params.calcium_depth_cap)
     stops = None
     if stops_xyz is not None and len(stops_xyz):
         stops_xyz = np.atleast_2d(np.asarray(stops_xyz, float))
