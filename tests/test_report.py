@@ -252,6 +252,17 @@ def test_an_unreadable_record_is_a_warning_not_a_stage_that_has_not_run(tmp_path
     assert "could not be built" not in page
 
 
+def test_a_junk_surface_or_mesh_is_one_warning_and_the_report_is_built(tmp_path, capfd):
+    (tmp_path / "surface.vtp").write_text("not VTK")
+    (tmp_path / "mesh.vtu").write_text("not VTK either")
+    code, err, page = _report_lines(capfd, tmp_path)
+    assert code == 0 and len(err) == 2, err
+    assert "surface.vtp could not be read: not a readable surface file" in err[0]
+    assert "mesh.vtu could not be read: not a readable mesh file" in err[1]
+    assert "mesh.vtu could not be read" in page[page.index("Volume mesh"):]
+    assert "could not be built" not in page
+
+
 def test_a_junk_vtk_file_in_the_case_is_one_warning_without_vtk_output(tmp_path, capfd):
     (tmp_path / "flow").mkdir()
     (tmp_path / "flow" / "summary.json").write_text("null")

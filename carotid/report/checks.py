@@ -11,8 +11,6 @@ from pathlib import Path
 
 import numpy as np
 
-from carotid.errors import CarotidError
-from carotid.io.vtkfile import read_vtk
 from carotid.mesh.mesher import CORE_MIN_DIHEDRAL
 
 # Near-occlusion on CTA (Bartlett et al., AJNR 2006;27:632-637): a residual lumen of at most 1.3 mm with a
@@ -136,7 +134,7 @@ def quality_checks(segmentation: dict, surface: dict, mesh: dict, flow: dict) ->
 
 
 def stale_warnings(case_dir: Path, record: dict, geometry: dict, segmentation: dict, mesh_quality: dict,
-                   flow: dict) -> list[str]:
+                   flow: dict, surface=None, mesh=None) -> list[str]:
     """Results that no longer match the files they were computed from.
 
     Each stage's record holds a fingerprint of its input: the flow summary the node and tetrahedron
@@ -144,27 +142,27 @@ def stale_warnings(case_dir: Path, record: dict, geometry: dict, segmentation: d
     the lumen volume of the segmentation and (once the surface stage has run on these centerlines) the
     caps.  ``case.json`` of ``carotid run`` adds the content hash of every output as it was written.
 
+    Parameters
+    ----------
+    case_dir : Path
+    record, geometry, segmentation, mesh_quality, flow : dict
+        The case's records (empty when missing).
+    surface, mesh : pyvista.PolyData, pyvista.UnstructuredGrid, optional
+        ``surface.vtp`` and ``mesh.vtu`` as the report read them; None when missing or unreadable.
+
     Returns
     -------
     list of str
         One sentence per stale result; empty when everything is consistent.  A mesh or surface file that
-        cannot be read is left out here: the report's section of it names the file.
+        cannot be read is left out here: the report names it among the unreadable files.
     """
     import pyvista as pv
 
     from carotid.pipeline import file_hash
 
-    def dataset(path: Path):
-        try:
-            return read_vtk(path, "VTK") if path.exists() else None
-        except CarotidError:
-            return None
-
     warnings = []
-    mesh_path, surface_path = case_dir / "mesh.vtu", case_dir / "surface.vtp"
     flow_mesh = flow.get("mesh", {})
-    mesh = dataset(mesh_path) if flow_mesh else None
-    if mesh is not None:
+    if mesh is not None and flow_mesh:
         tets = int(np.count_nonzero(np.asarray(mesh.celltypes) == pv.CellType.TETRA))
         if (flow_mesh.get("tetrahedra"), flow_mesh.get("nodes")) != (tets, mesh.n_points):
             warnings.append(f"The flow results were computed on a mesh of {flow_mesh.get('tetrahedra', 0):,} "
@@ -172,8 +170,7 @@ def stale_warnings(case_dir: Path, record: dict, geometry: dict, segmentation: d
                             f"tetrahedra and {mesh.n_points:,} nodes. Flow, WSS maps and indices are stale: "
                             "rerun the simulate stage.")
     recorded_surface = mesh_quality.get("volume", {}).get("surface_mm3")
-    surface = dataset(surface_path) if recorded_surface else None
-    if surface is not None:
+    if surface is not None and recorded_surface:
         volume = abs(surface.volume)
         if abs(volume - recorded_surface) > 1e-6 * recorded_surface:
             warnings.append(f"mesh.vtu was built from a surface of {recorded_surface:.1f} mm³; surface.vtp now "
@@ -183,7 +180,7 @@ def stale_warnings(case_dir: Path, record: dict, geometry: dict, segmentation: d
     if lumen is not None and segmented is not None and abs(lumen - segmented) > 1e-6 * segmented:
         warnings.append(f"The centerlines were computed from a lumen of {lumen:.1f} mm³; the segmentation now "
                         f"holds {segmented:.1f} mm³. Centerlines, stenosis grade and later stages are stale.")
-    if geometry and surface_path.exists() and "caps" not in geometry:
+    if geometry and (case_dir / "surface.vtp").exists() and "caps" not in geometry:
         warnings.append("surface.vtp was built on earlier centerlines (geometry.json records no caps): "
                         "the surface and later stages may be stale.")
     for stage, done in record.get("stages", {}).items():

@@ -107,7 +107,8 @@ RECORDS = (("record", "case.json", "`carotid run`"), ("segmentation", "segmentat
 @dataclass
 class Case:
     """The records of a case folder (each an empty dict when its stage, or the convergence study, has not run, or
-    its file cannot be read), its centerlines and wall indices surface (None when missing or unreadable), and
+    its file cannot be read), its centerlines, lumen surface, volume mesh and wall indices surface (None when
+    missing or unreadable; each read once), and
     ``unreadable``: file name -> one sentence for each of them that exists but cannot be read."""
 
     dir: Path
@@ -119,6 +120,8 @@ class Case:
     flow: dict
     convergence: dict = field(default_factory=dict)
     centerlines: object = None
+    surface: object = None
+    mesh: object = None
     wall: object = None
     unreadable: dict = field(default_factory=dict)
 
@@ -141,9 +144,13 @@ class Case:
         # centerlines.vtp is read with geometry.json: an unreadable geometry.json is entered once, as itself
         centerlines = None if "geometry.json" in unreadable else \
             attempt("centerlines.vtp", read_centerlines, case_dir / "centerlines.vtp")
+        surface = attempt("surface.vtp", read_vtk, case_dir / "surface.vtp", "surface", None,
+                          "rerun the surface stage")
+        mesh = attempt("mesh.vtu", read_vtk, case_dir / "mesh.vtu", "mesh", None, "rerun the mesh stage")
         wall = attempt("flow/indices.vtp", read_vtk, case_dir / "flow" / "indices.vtp", "wall indices", None,
                        "rerun the simulate stage")
-        return cls(case_dir, **records, centerlines=centerlines, wall=wall, unreadable=unreadable)
+        return cls(case_dir, **records, centerlines=centerlines, surface=surface, mesh=mesh, wall=wall,
+                   unreadable=unreadable)
 
     def absent(self, stage: str, *names: str) -> str:
         """Why the files ``names`` of ``stage`` are not shown: the first that could not be read, else the stage
@@ -476,7 +483,7 @@ def case_warnings(case: Case) -> list[str]:
     each."""
     warnings = [f"{message}." for message in case.unreadable.values()]
     warnings += stale_warnings(case.dir, case.record, case.geometry, case.segmentation, case.mesh_quality,
-                              case.flow)
+                              case.flow, case.surface, case.mesh)
     failed = [c for c in quality_checks(case.segmentation, case.surface_quality, case.mesh_quality, case.flow)
               if not c.passed]
     warnings += [f"{c.stage} quality check failed: {c.quantity} = {_value(c.value)} (criterion {c.criterion})."
@@ -520,9 +527,8 @@ def summary_html(case: Case) -> str:
     left = []
     cl = case.centerlines
     geometry = geometry_features(cl) if cl is not None else {}
-    surface_path = case.dir / "surface.vtp"
-    if surface_path.exists() and cl is not None:
-        surface = read_vtk(surface_path, "surface", remedy="rerun the surface stage")
+    surface = case.surface
+    if surface is not None and cl is not None:
         ids = np.asarray(surface["CellEntityIds"])
         caps = case.cap_names()
         cap_ids = sorted(set(np.unique(ids).tolist()) - {1})
@@ -777,11 +783,9 @@ def geometry_section(case: Case) -> Section:
                                  for c in caps], ["id", "branch", "area (mm²)", "equivalent radius (mm)"]))
     skip = ("stenosis", "stenoses", "branches", "caps", "branch_names", "centerlines_file", "bifurcation_geometry")
     section.tables.append(Table("Centerline record", flatten({k: v for k, v in geometry.items() if k not in skip})))
-    if (case.dir / "surface.vtp").exists():
+    if case.surface is not None:
         section.figures.append(("Smallest angle of each surface triangle",
-                                figures.histogram({"surface": _triangle_min_angles(
-                                    read_vtk(case.dir / "surface.vtp", "surface", remedy="rerun the surface stage"))},
-                                    "degrees")))
+                                figures.histogram({"surface": _triangle_min_angles(case.surface)}, "degrees")))
     section.tables.append(checks_table(quality_checks({}, case.surface_quality, {}, {})))
     section.tables.append(Table("Surface record", flatten({k: v for k, v in case.surface_quality.items()
                                                            if k != "caps"})))
@@ -791,11 +795,10 @@ def geometry_section(case: Case) -> Section:
 def mesh_section(case: Case) -> Section:
     """A cut through the volume mesh, a close-up of the wall layers, and the quality figures."""
     section = Section("Volume mesh")
-    path = case.dir / "mesh.vtu"
-    if not path.exists():
-        section.note = "The mesh stage has not run."
+    mesh = case.mesh
+    if mesh is None:
+        section.note = case.absent("mesh", "mesh.vtu")
         return section
-    mesh = read_vtk(path, "mesh", remedy="rerun the mesh stage")
     section.figures.append(("Tetrahedra behind a plane through the mesh centre (layer and core regions)",
                             figures.mesh_cut_view(mesh)))
     section.figures.append(("Close-up of the wall layers", figures.mesh_cut_view(mesh, zoom=4.0)))
