@@ -644,3 +644,24 @@ def test_a_measured_slice_blur_reaches_the_model_and_the_report(monkeypatch):
     gaussian = deblur.gaussian_part(measured["blur_mm"], spacing)
     assert measured["model_blur_kji_mm"][0] == pytest.approx(np.hypot(gaussian, 0.5))
     assert runs[0.6].report["intensity"]["slice_thickness_source"] == "parameter"
+
+
+def test_segment_passes_the_depth_cap_to_the_calcium_step(monkeypatch):
+    """``calcium_depth_cap`` reaches ``hyperdense_edge``: with it the walled nodule's core leaves the image the
+    front reads near the tissue level, without it near the lumen's half level."""
+    image, ball = walled_nodule(0.75, 0.3)
+    centre = ball == ball.min()
+    seen = {}
+
+    def recording(*args, **kwargs):
+        corrected, extent, info = hyperdense_edge(*args, **kwargs)
+        seen[kwargs["depth_cap"]] = float(np.max(corrected[centre]))
+        return corrected, extent, info
+
+    monkeypatch.setattr(segmentation, "hyperdense_edge", recording)
+    volume = Volume(image, spacing=tuple(SPACING[::-1]))
+    seeds = volume.index_to_world(np.array([[6.0, 31.5, 31.5], [41.0, 31.5, 31.5]]))
+    for cap in (False, True):
+        segment(volume, seeds_xyz=seeds, params=SegmentParameters(calcium_depth_cap=cap))
+    assert set(seen) == {False, True}
+    assert seen[True] - B < 0.2 * (A - B) < 0.25 * (A - B) < seen[False] - B
