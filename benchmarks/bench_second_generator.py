@@ -25,6 +25,11 @@ those cases out.
 Usage (from the repository root)::
 
     .venv/bin/python benchmarks/bench_second_generator.py [--quick] [--cases N] [--jobs J]
+        [--variant NAME=VALUE[,NAME=VALUE...]] [--name NAME]
+
+Writes ``results/second_generator.json``.  ``--variant`` runs carotid alone, with those ``SegmentParameters``
+overrides, into ``results/second_generator_variant.json`` (``--name`` names another), to set an option against
+the defaults' figures of ``second_generator.json`` case for case.
 """
 
 from __future__ import annotations
@@ -36,9 +41,10 @@ from concurrent.futures import ProcessPoolExecutor
 import numpy as np
 
 from _common import git_state, write_results
-from bench_segmentation import (brief, grade, guarded, meets, run_carotid, run_gac_from_seeds, run_threshold,
-                                run_vmtk, score, summarise, threshold_rule)
+from bench_segmentation import (brief, grade, guarded, meets, parse_variant, run_carotid, run_gac_from_seeds,
+                                run_threshold, run_vmtk, score, summarise, threshold_rule)
 from carotid.centerline.plaque import CALCIFIED_MM, calcified
+from carotid.segment import SegmentParameters
 from second_generator import draw, make_second_phantom
 
 METHODS = ("carotid", "vmtk", "gac", "threshold")
@@ -48,8 +54,9 @@ AT_LESION_MM = 5.0
 BRANCHES = ("CCA", "ICA", "ECA")
 
 
-def run_case(seed: int) -> tuple[dict, list[str]]:
-    """One case: every method from the same seeds, scored against the truth; (record, log lines)."""
+def run_case(seed: int, overrides: dict | None = None) -> tuple[dict, list[str]]:
+    """One case: every method from the same seeds, scored against the truth; (record, log lines).  With
+    ``overrides`` (``SegmentParameters`` fields), carotid alone, so parameterised."""
     lines = []
     t0 = time.perf_counter()
     phantom = make_second_phantom(seed)
@@ -69,9 +76,12 @@ def run_case(seed: int) -> tuple[dict, list[str]]:
            f"{phantom.info['vein_gap_measured_mm']:.2f} mm, calcium {'%.0f' % p['calcium_hu'] if p['calcium'] else '-'})")
     lines.append(f"case {tag}: {volume.array.shape} in {generation:.1f} s; true lumen graded NASCET "
                  f"{truth.get('nascet')}, min diameter {truth.get('min_diameter_mm')} mm")
-    runners = {"carotid": (run_carotid, volume, seeds), "vmtk": (run_vmtk, volume, seeds, rule["lower_threshold"]),
+    runners = {"carotid": (run_carotid, volume, seeds, SegmentParameters(**(overrides or {}))),
+               "vmtk": (run_vmtk, volume, seeds, rule["lower_threshold"]),
                "gac": (run_gac_from_seeds, volume, seeds),
                "threshold": (run_threshold, volume, seeds, rule["lower_threshold"])}
+    if overrides is not None:
+        runners = {"carotid": runners["carotid"]}
     methods = {}
     for name, (func, *args) in runners.items():
         record, run = guarded(name, tag, func, *args)
@@ -116,17 +126,22 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="four cases")
     parser.add_argument("--cases", type=int, default=48, help="cases 0 .. N-1 (default 48)")
     parser.add_argument("--jobs", type=int, default=2, help="cases run at once (default 2)")
+    parser.add_argument("--variant", type=parse_variant, help="carotid alone, with these SegmentParameters "
+                        "overrides: NAME=VALUE[,NAME=VALUE...]")
+    parser.add_argument("--name", help="results file name (default second_generator, or second_generator_variant "
+                        "with --variant)")
     args = parser.parse_args()
     seeds = list(range(4 if args.quick else args.cases))
+    methods = METHODS if args.variant is None else ("carotid",)
     git = git_state()
     start = time.perf_counter()
     cases = []
     with ProcessPoolExecutor(args.jobs) as pool:
-        for case, lines in pool.map(run_case, seeds):
+        for case, lines in pool.map(run_case, seeds, [args.variant] * len(seeds)):
             print("\n".join(lines), flush=True)
             cases.append(case)
-    summary = summarise(cases, METHODS)
-    at_lesion = summarise([c for c in cases if c["truth_graded"]["graded_at_lesion"]], METHODS)
+    summary = summarise(cases, methods)
+    at_lesion = summarise([c for c in cases if c["truth_graded"]["graded_at_lesion"]], methods)
     for name, s in (("all cases", summary), ("true lumen graded at the lesion", at_lesion)):
         for method, m in s["methods"].items():
             print(f"{name}, {method}: ok {m['ok']}, meeting {m['meeting']}, median {m['median']}", flush=True)
@@ -137,8 +152,10 @@ def main() -> None:
               f"({split['with_drawn_calcium']} with calcium drawn), NASCET within 5 points on "
               f"{len(split['meeting_nascet_error_points'])}, minimal diameter within 0.25 mm on "
               f"{len(split['meeting_min_diameter_error_mm'])}", flush=True)
-    write_results("second_generator", {
+    name = args.name or ("second_generator" if args.variant is None else "second_generator_variant")
+    write_results(name, {
         "benchmark": "segmentation on a second phantom generator", "git": git, "jobs": args.jobs,
+        "overrides": args.variant or {},
         "draw": {"seeds": seeds, "parameters_of_seed_0": draw(0)}, "cases": cases, "summary": summary,
         "summary_graded_at_lesion": at_lesion, "at_lesion_mm": AT_LESION_MM, "calcified": calcified_cases,
         "total_seconds": time.perf_counter() - start}, quick=args.quick)
