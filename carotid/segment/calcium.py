@@ -138,11 +138,15 @@ def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: flo
         # Within a blur width or two of its edge a structure holds its neighbours' blur too (the lumen's, up
         # to half the contrast at a shared edge): what remains after the subtraction, kept below the half level
         # or below what the lumen's blur can leave at its depth.
-        depth = np.full(image.shape, np.inf, np.float32)
-        depth[box] = ndimage.distance_transform_edt(extent[box], sampling=spacing_kji)
-        rim = extent & (depth < 2.0 * blur_mm)
-        cap = (lumen_blur_cap(depth[wide], lumen, background, blur_mm, spacing_kji) if depth_cap
-               else np.float32(0.5 * (lumen + background)))
+        depth = ndimage.distance_transform_edt(extent[box], sampling=spacing_kji)
+        rim = np.zeros(image.shape, bool)
+        rim[box] = extent[box] & (depth < 2.0 * blur_mm)
+        cap = np.float32(0.5 * (lumen + background))
+        if depth_cap:  # in the box's part of the wide crop; beyond it no structure, no rim
+            cap = np.full(crop.shape, np.float32(background), np.float32)
+            cap[tuple(slice(b.start - w.start, b.stop - w.start) for b, w in zip(box, wide))] = lumen_blur_cap(
+                depth.astype(np.float32), lumen, background, blur_mm, spacing_kji)
+        del depth
         remains = np.clip(crop - blurred, np.float32(background), cap)
         local = np.where(inside, np.where(rim[wide], remains, local), crop - blurred)
         amplitude_max = float(amplitude.max())
