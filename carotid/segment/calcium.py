@@ -105,8 +105,7 @@ def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: flo
     near[outer] = distance <= reach_mm
     box = region_box(near, spacing_kji, 0.0)
     # Lumen-level voxels closer than two blur widths may be a structure's own blurred edge: no lumen marker there.
-    clear = distance[tuple(slice(b.start - o.start, b.stop - o.start) for b, o in zip(box, outer))] > 2.0 * (
-        blur_mm or sigma_mm)
+    clear = distance[within(box, outer)] > 2.0 * (blur_mm or sigma_mm)
     regions = np.zeros(image.shape, np.int8)
     regions[box] = structure_regions(image[box], smooth[box], hot[box], near[box], clear, lumen, background,
                                      spacing_kji, sigma_mm)
@@ -144,8 +143,8 @@ def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: flo
         cap = np.float32(0.5 * (lumen + background))
         if depth_cap:  # in the box's part of the wide crop; beyond it no structure, no rim
             cap = np.full(crop.shape, np.float32(background), np.float32)
-            cap[tuple(slice(b.start - w.start, b.stop - w.start) for b, w in zip(box, wide))] = lumen_blur_cap(
-                depth.astype(np.float32), lumen, background, blur_mm, spacing_kji)
+            cap[within(box, wide)] = lumen_blur_cap(depth.astype(np.float32), lumen, background, blur_mm,
+                                                    spacing_kji)
         del depth
         remains = np.clip(crop - blurred, np.float32(background), cap)
         local = np.where(inside, np.where(rim[wide], remains, local), crop - blurred)
@@ -154,6 +153,11 @@ def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: flo
     out[wide] = local
     volume = float(np.count_nonzero(extent) * np.prod(spacing_kji))
     return out, extent, {"structures": int(n), "volume_mm3": volume, "blur_amplitude_max": amplitude_max}
+
+
+def within(box: tuple[slice, ...], outer: tuple[slice, ...]) -> tuple[slice, ...]:
+    """The slices of ``box`` relative to ``outer``, a box of the same image that holds it."""
+    return tuple(slice(b.start - o.start, b.stop - o.start) for b, o in zip(box, outer))
 
 
 def lumen_blur_cap(depth: np.ndarray, lumen: float, background: float, blur_mm: float,
