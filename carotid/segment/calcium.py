@@ -57,7 +57,8 @@ TISSUE_FRACTION = 0.25
 
 def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: float, spacing_kji,
                     blur_mm: float | None, reach_mm: float = 3.0, sigma_mm: float = 0.5,
-                    balls: bool = False, depth_cap: bool = False) -> tuple[np.ndarray, np.ndarray, dict]:
+                    balls: bool = False, depth_cap: bool = False,
+                    tissue_offset: bool = False) -> tuple[np.ndarray, np.ndarray, dict]:
     """The image with each hyperdense structure (calcium, bone) and its blur replaced by the background.
 
     Parameters
@@ -80,6 +81,9 @@ def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: flo
     depth_cap : bool
         Keep what remains within two blur widths of a structure's edge only up to ``lumen_blur_cap`` at its
         depth; False: up to the lumen's half level at every depth.
+    tissue_offset : bool
+        Fit the level of the tissue around each structure with its blur (``structure_blur``); False: the
+        tissue is taken at ``background``.
 
     Returns
     -------
@@ -133,7 +137,7 @@ def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: flo
         owner = np.where((regions[wide] == TISSUE) & ~inside, grown, 0)
         belongs = np.where(fraction[wide] > 0, np.where(labels > 0, labels, grown), 0)
         blurred, amplitude = structure_blur(crop, belongs, n, fraction[wide], owner, background, spacing_kji,
-                                            blur_mm)
+                                            blur_mm, tissue_offset)
         # Within a blur width or two of its edge a structure holds its neighbours' blur too (the lumen's, up
         # to half the contrast at a shared edge): what remains after the subtraction, kept below the half level
         # or below what the lumen's blur can leave at its depth.
@@ -253,13 +257,21 @@ def label_maximum(values: np.ndarray, labels: np.ndarray, n: int) -> np.ndarray:
 
 
 def structure_blur(image: np.ndarray, labels: np.ndarray, n: int, fraction: np.ndarray, owner: np.ndarray,
-                   background: float, spacing_kji, blur_mm: float) -> tuple[np.ndarray, np.ndarray]:
+                   background: float, spacing_kji, blur_mm: float,
+                   tissue_offset: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Blur the structures spread into their surroundings: ``sum_i a_i G * chi_i`` (image units).
 
     The amplitude ``a_i`` of structure ``i`` is the least-squares fit of ``a_i G * chi_i`` to ``image - B``
     over the tissue it owns (``owner == i``), where nothing but the structure's blur raises the intensity:
     the structure's blurred density, which for a structure smaller than the blur is less than its true one.
     It is bounded by the structure's peak excess over ``B`` divided by the kernel there.
+
+    With ``tissue_offset`` the fit is ``a_i G * chi_i + c_i``: the tissue around a structure has its own
+    level ``B + c_i``.  The image's background ``B`` is one level for the whole neck, between fat (-100 HU)
+    and muscle or plaque (+40 HU); a calcification lies in plaque, and without the offset the plaque's excess
+    over ``B`` is taken for the structure's blur.  The amplitude then comes out too large, and the surplus is
+    subtracted from the lumen beside the structure as well.  Where the owned tissue cannot separate the two
+    (all of it at one kernel value) the fit keeps ``c_i = 0``.
 
     Parameters
     ----------
@@ -275,6 +287,8 @@ def structure_blur(image: np.ndarray, labels: np.ndarray, n: int, fraction: np.n
     spacing_kji : array_like, shape (3,)
     blur_mm : float
         Standard deviation of the Gaussian blur, mm.
+    tissue_offset : bool
+        Fit each structure's tissue level as well (``c_i``); False: ``c_i = 0``.
 
     Returns
     -------
@@ -287,9 +301,15 @@ def structure_blur(image: np.ndarray, labels: np.ndarray, n: int, fraction: np.n
     # Sums over the voxels each structure owns, by bincount on those voxels alone (ndimage.sum over the whole
     # image took a second of a 256^3 run).
     fit = np.nonzero((kernel > np.float32(0.05)) & (owner > 0))
-    which, weight = owner[fit], kernel[fit]
-    amplitude = np.bincount(which, weight * excess[fit], n + 1)[1:] / np.maximum(
-        np.bincount(which, weight * weight, n + 1)[1:], 1e-6)
+    which, weight, value = owner[fit], kernel[fit], excess[fit]
+    total = functools.partial(np.bincount, which, minlength=n + 1)
+    sww, swe = total(weight * weight)[1:], total(weight * value)[1:]
+    amplitude = swe / np.maximum(sww, 1e-6)
+    if tissue_offset:  # normal equations of a G * chi + c, per structure
+        count, sw, se = total()[1:], total(weight)[1:], total(value)[1:]
+        det = count * sww - sw * sw
+        separable = det > 1e-3 * count * sww
+        amplitude = np.where(separable, (count * swe - sw * se) / np.where(separable, det, 1.0), amplitude)
     # The blurred structure cannot be brighter than it is: at most its own excess where it is most itself.
     inside = labels > 0
     peak, reach = (label_maximum(v[inside], labels[inside], n) for v in (excess, kernel))

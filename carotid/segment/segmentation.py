@@ -83,6 +83,12 @@ class SegmentParameters:
         to the lumen's half level at every depth, which a nodule a few blur widths across, its core
         under-subtracted, holds throughout and the front may take for lumen.  Off: not yet run through every
         benchmark (``benchmarks/README.md``).
+    calcium_tissue_level : bool
+        Fit the level of the tissue around each hyperdense structure together with the amplitude of its blur
+        (``calcium.structure_blur(tissue_offset=True)``), instead of taking that tissue at the image's
+        background level: plaque above the background was taken for the calcium's blur, and the surplus
+        subtracted from the lumen beside it narrowed a calcified throat.  Off: not yet run through every
+        benchmark (``benchmarks/README.md``).
     barrier : float
         Half level of the barrier (``barrier.half_level_barrier``): voxels darker than this fraction of the
         brightest lumen-like value within ``barrier_reach_mm`` push the front out (a blurred gap to an enhancing
@@ -227,6 +233,7 @@ class SegmentParameters:
     calcium_edge: bool = True
     calcium_balls: bool = False
     calcium_depth_cap: bool = False
+    calcium_tissue_level: bool = False
     barrier: float = 0.5
     barrier_reach_mm: float = 3.0
     plateau: float = 0.8
@@ -762,7 +769,8 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
     if params.calcium_edge:
         image, dense, hyperdense = hyperdense_edge(image, window[1], model.lumen, model.background, spacing,
                                                    model.blur, balls=params.calcium_balls,
-                                                   depth_cap=params.calcium_depth_cap)
+                                                   depth_cap=params.calcium_depth_cap,
+                                                   tissue_offset=params.calcium_tissue_level)
     stops = None
     if stops_xyz is not None and len(stops_xyz):
         stops_xyz = np.atleast_2d(np.asarray(stops_xyz, float))
