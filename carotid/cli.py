@@ -388,11 +388,20 @@ OUTPUT_FOLDERS = ("output", "out_dir", "case_dir")
 
 
 def check_output_folders(args) -> None:
-    """Raise CarotidError when an output folder argument names an existing file."""
+    """Raise CarotidError when an output folder argument names an existing file or a place nothing can be
+    written to, before any work is done."""
     for name in OUTPUT_FOLDERS:
         value = getattr(args, name, None)
-        if value is not None and Path(value).exists() and not Path(value).is_dir():
+        if value is None:
+            continue
+        path = Path(value).absolute()
+        if path.exists() and not path.is_dir():
             raise CarotidError(f"{value}: exists and is a file, not a folder")
+        existing = next(p for p in (path, *path.parents) if p.exists())
+        if not existing.is_dir():
+            raise CarotidError(f"{value}: cannot be created, {existing} is a file")
+        if not os.access(existing, os.W_OK | os.X_OK):
+            raise CarotidError(f"{value}: cannot be written, {existing} is not writable")
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
@@ -416,6 +425,10 @@ def main(argv=None) -> int:
         return 2
     except MemoryError:
         print("carotid: error: out of memory (try a smaller region of interest)", file=sys.stderr)
+        return 2
+    except OSError as exc:  # the file system refused (a folder that cannot be made, a full disk)
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"carotid: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("carotid: interrupted", file=sys.stderr)

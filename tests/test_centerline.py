@@ -546,6 +546,17 @@ def test_a_one_voxel_lumen_and_a_flipped_level_set_are_refused():
         compute_centerlines(sdf.with_array(-sdf.array), sdf.with_array((sdf.array < 0).astype(np.uint8)))
 
 
+def test_a_level_set_deeper_than_its_lumen_is_refused():
+    """One voxel 30 mm deep in a lumen 8 mm across is not a signed distance in mm: refused before the skeleton,
+    padded by twice the deepest value, asks for the memory (a -300 mm voxel took 24 GB and the kernel killed
+    the process)."""
+    sdf, _, _, _ = y_shape()
+    spike = sdf.array.copy()
+    spike[np.unravel_index(np.argmin(spike), spike.shape)] = -30.0
+    with pytest.raises(CarotidError, match="not the lumen's signed distance"):
+        compute_centerlines(sdf.with_array(spike))
+
+
 def test_unreadable_geometry_beside_centerlines_is_one_clear_error(tmp_path):
     cl = phantom_centerlines(ACCURACY_CASES[0])
     _, geometry = write_centerlines(cl, tmp_path)

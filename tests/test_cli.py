@@ -218,6 +218,29 @@ def test_an_output_folder_that_is_a_file_is_refused(phantom_dir, tmp_path, capsy
     assert file.read_text() == "keep me"
 
 
+@pytest.mark.parametrize("argv", [["phantom", "{out}"], ["segment", "{image}", "-o", "{out}"]])
+def test_an_output_folder_that_cannot_be_made_is_refused_before_the_work(phantom_dir, tmp_path, capsys, argv):
+    """Under a file the folder cannot be made: one line and status 2 before any work, not an internal error
+    after it.  Where the file system refuses later (a folder the check let through), its error is one line too."""
+    file = tmp_path / "taken.txt"
+    file.write_text("keep me")
+    out = file / "case"
+    code, _, err = run_and_capture(capsys, [a.format(out=out, image=phantom_dir / "image.nii.gz") for a in argv])
+    assert code == 2 and err.strip() == f"carotid: error: {out}: cannot be created, {file} is a file"
+    assert file.read_text() == "keep me"
+
+
+def test_a_file_system_error_is_one_line(tmp_path, capsys, monkeypatch):
+    from carotid import cli
+
+    def refuse(args):
+        raise PermissionError(13, "Permission denied", str(tmp_path / "case"))
+
+    monkeypatch.setattr(cli, "check_output_folders", refuse)
+    code, _, err = run_and_capture(capsys, ["phantom", tmp_path / "case"])
+    assert code == 2 and err.strip() == f"carotid: error: {tmp_path / 'case'}: Permission denied"
+
+
 def test_manifest_rows_are_checked_with_their_line(tmp_path, capsys, monkeypatch):
     from carotid.batch import read_manifest
 

@@ -123,7 +123,8 @@ def test_bad_parameters_are_refused():
            dict(blur_sigma_mm=-1), dict(bolus_fade=1.0), dict(ica_shape="spiral"), dict(modality="pet"),
            dict(modality="mr", calcium_hu=800), dict(bias=0.2), dict(modality="mr", bias=1.0),
            dict(plaque_size=-1), dict(plaque_offset_mm=9), dict(arterial_hu=20), dict(calcium_hu=-5), dict(seed=-1),
-           dict(noise_seed=-1), dict(noise_seed=1.5), dict(ica_shape="loop", extent=(44, 44, 50))]
+           dict(noise_seed=-1), dict(noise_seed=1.5), dict(ica_shape="loop", extent=(44, 44, 50)),
+           dict(spacing=(10.0, 10.0, 10.0))]
     for kwargs in bad:
         with pytest.raises(CarotidError):
             make_phantom(**kwargs)

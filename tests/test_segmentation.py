@@ -125,6 +125,24 @@ def test_unusable_images_are_refused():
         segment(p.image, params=SegmentParameters(alpha=1.5))
 
 
+@pytest.mark.parametrize("field, value", [("deblur_iterations", 10 ** 8), ("deblur_gain", 1e6), ("tolerance", 5.0),
+                                          ("seed_radius_mm", 1000.0), ("slice_thickness_mm", 1000.0)])
+def test_values_past_any_scan_are_refused(field, value):
+    """Values that hung the refinement for hours (10^8 steps) or gave a wrong lumen without a word (a 1 m seed,
+    a tolerance of 500 % that stops the front at once) are refused; the largest meaningful value passes."""
+    with pytest.raises(CarotidError, match=field):
+        SegmentParameters(**{field: value}).validate()
+    limits = {"deblur_iterations": 1000, "deblur_gain": 10.0, "tolerance": 0.5, "seed_radius_mm": 20.0,
+              "slice_thickness_mm": 10.0}
+    SegmentParameters(**{field: limits[field]}).validate()
+
+
+def test_an_initial_region_that_fills_the_image_is_refused():
+    p = phantom()
+    with pytest.raises(CarotidError, match="covers 100 % of the image"):
+        segment(p.image, init_mask=np.ones(p.image.array.shape, bool))
+
+
 def test_kept_components_follow_the_seeds():
     """A seed inside a component keeps it; a seed the front left keeps the component within reach of it,
     and not the largest one; a seed far from everything falls back to the largest."""

@@ -57,6 +57,36 @@ def without_voids(levelset: Volume, lumen: np.ndarray) -> Volume:
     return levelset.with_array(phi)
 
 
+def deepest_radius(lumen: np.ndarray, phi: np.ndarray, spacing_kji) -> float:
+    """Radius (mm) of the largest sphere in the lumen: the level set's deepest value, at least a voxel.
+
+    A sphere inside the lumen fits inside the lumen's bounding box, so its radius is at most half the box's
+    narrowest side.  A level set whose deepest value lies beyond that (a corrupt voxel, values in other
+    units) is not the mask's signed distance in mm; the skeleton, padded by twice this radius, would then
+    ask for more memory than the machine has.
+
+    Parameters
+    ----------
+    lumen : ndarray of bool, shape (nk, nj, ni)
+    phi : ndarray, float, same shape
+        Signed distance (mm), negative inside.
+    spacing_kji : ndarray, shape (3,)
+        Voxel size, mm.
+
+    Returns
+    -------
+    float
+    """
+    spacing_kji = np.asarray(spacing_kji, float)
+    deepest = float(-phi[lumen].min())
+    where = np.nonzero(lumen)
+    sides = (np.array([w.max() - w.min() + 1 for w in where]) * spacing_kji).min()
+    if deepest > 0.5 * sides + spacing_kji.max():
+        raise CarotidError(f"the level set's deepest value inside the lumen, {deepest:.4g} mm, exceeds what a lumen "
+                           f"{sides:.1f} mm across can hold: it is not the lumen's signed distance in mm")
+    return max(deepest, float(spacing_kji.max()))
+
+
 def compute_centerlines(levelset: Volume, mask: Volume | None = None, *, prune: float = 2.0,
                         smoothing: float = 1.0, step: float | None = None, merge: float = 0.5,
                         anatomical_frame: bool = True, centre: bool = True) -> Centerlines:
@@ -109,7 +139,7 @@ def compute_centerlines(levelset: Volume, mask: Volume | None = None, *, prune: 
                            "it must be a signed distance, negative inside")
     levelset = without_voids(levelset, lumen)
     phi = levelset.array
-    r_max = float(max(-phi[lumen].min(), spacing_kji.max()))
+    r_max = deepest_radius(lumen, phi, spacing_kji)
     skel = skeletonize_lumen(lumen, spacing_kji, extend_mm=2.0 * r_max)
     if np.count_nonzero(skel) < 2:
         raise CarotidError(f"the lumen ({np.count_nonzero(lumen)} voxels) is too small to hold a vessel axis")

@@ -60,6 +60,8 @@ from carotid.phantom.geometry import (STEP, Branch, bias_field, coil_tangents, c
 
 LABELS = {"background": 0, "lumen": 1, "vein": 2, "bone": 3, "calcium": 4, "fat": 5}
 
+MAX_SPACING_MM = 3.0
+"""Coarsest voxel of a phantom, mm: twice an MR angiogram's thickest slices."""
 TISSUE_HU = 40.0
 CORTICAL_HU = 1000.0
 MARROW_HU = 280.0
@@ -620,6 +622,9 @@ def make_phantom(stenosis: float | None = None, noise: float | None = None, seed
     if noise_seed is not None:
         _check_seed("noise seed", noise_seed)
     spacing = _triple("spacing", spacing)
+    if max(spacing) > MAX_SPACING_MM:
+        raise CarotidError(f"spacing {list(spacing)} mm: a phantom's voxels must be at most {MAX_SPACING_MM:g} mm "
+                           "(coarser ones cannot resolve a carotid a few millimetres across)")
     extent = _triple("extent", extent)
     if blur_fwhm is not None and blur_sigma_mm is not None:
         raise CarotidError("give the scanner blur as blur_fwhm or as blur_sigma_mm, not both")

@@ -41,6 +41,15 @@ MAX_KERNEL_MM = 100.0
 padded by it."""
 MAX_DENOISE_ITERATIONS = 1000
 """Most curvature-diffusion iterations: a few tens smooth a CT's noise; 1000 take minutes on a 256^3 region."""
+MAX_DEBLUR_ITERATIONS = 1000
+"""Most blur-model refinement steps: 20 are the default, 100 run it to convergence (``benchmarks/refine_budget.py``)."""
+MAX_DEBLUR_GAIN = 10.0
+"""Largest refinement step, in blur widths per unit of normalised misfit: 2 is the default, 6 the converged
+oracle's; beyond it the step exceeds the one blur width the wall may move."""
+MAX_SEED_RADIUS_MM = 20.0
+"""Largest seed sphere, mm: a thoracic aorta's radius; a larger sphere reaches out of any vessel."""
+MAX_SLICE_THICKNESS_MM = 10.0
+"""Thickest slice, mm: a 5 mm clinical reconstruction is not an angiogram; 10 mm is past any."""
 
 
 @dataclass
@@ -315,18 +324,21 @@ class SegmentParameters:
             (self.sigma_mm >= 0, "sigma_mm must not be negative"),
             (self.potential_scale > 0, "potential_scale must be positive"),
             (self.edge_beta > 0, "edge_beta must be positive"),
-            (self.seed_radius_mm > 0, "seed_radius_mm must be positive"),
+            (0 < self.seed_radius_mm <= MAX_SEED_RADIUS_MM,
+             f"seed_radius_mm must lie in (0, {MAX_SEED_RADIUS_MM:g}] mm"),
             (0 < self.cfl < 1, "cfl must lie in (0, 1)"),
             (self.max_iterations > 0, "max_iterations must be positive"),
-            (self.tolerance > 0, "tolerance must be positive (the fraction of front voxels that may still move)"),
+            (0 < self.tolerance < 1, "tolerance must lie in (0, 1) (the fraction of front voxels that may still move)"),
             (self.far_mm > 0, "far_mm must be positive"),
             (0 <= self.denoise_iterations <= MAX_DENOISE_ITERATIONS,
              f"denoise_iterations must lie in [0, {MAX_DENOISE_ITERATIONS}]"),
             (self.handle_mm >= 0, "handle_mm must not be negative"),
-            (self.deblur_iterations >= 0 and self.deblur_gain > 0 and self.deblur_smooth_mm >= 0,
-             "deblur_iterations and deblur_smooth_mm must not be negative, deblur_gain must be positive"),
-            (self.slice_thickness_mm >= 0,
-             "slice_thickness_mm must be a number >= 0 (0: the scan's own)"),
+            (0 <= self.deblur_iterations <= MAX_DEBLUR_ITERATIONS and 0 < self.deblur_gain <= MAX_DEBLUR_GAIN
+             and self.deblur_smooth_mm >= 0,
+             f"deblur_iterations must lie in [0, {MAX_DEBLUR_ITERATIONS}], deblur_gain in (0, {MAX_DEBLUR_GAIN:g}], "
+             "deblur_smooth_mm must not be negative"),
+            (0 <= self.slice_thickness_mm <= MAX_SLICE_THICKNESS_MM,
+             f"slice_thickness_mm must lie in [0, {MAX_SLICE_THICKNESS_MM:g}] mm (0: the scan's own)"),
             (self.wall_hu_low < self.wall_contrast_hu and (
                 self.wall_hu_high == 0 or self.wall_hu_low < self.wall_hu_high < self.wall_contrast_hu),
              "wall_hu_low < wall_hu_high (0: measured) < wall_contrast_hu required"),
