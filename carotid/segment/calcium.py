@@ -24,7 +24,8 @@ blurred step is the half-way level, towards the lumen and towards the tissue
 alike, placed to a fraction of a voxel (``edge_fraction``: the steepest point
 moved out by the blur's curvature shift, or the edge of the blurred plate,
 rod or nodule whose steepest point and ridge lie where the image's do).  Its blur, a Gaussian of the image's own width (``intensity.edge_blur``)
-times an amplitude fitted on its tissue side, is subtracted from the image,
+times an amplitude fitted on its tissue side (with, on request, that tissue's own level:
+``tissue_offset``), is subtracted from the image,
 so that the lumen next to it keeps only its own intensity; the structure
 itself becomes background, except within two blur widths of its edge, where
 what remains after the subtraction (the lumen's own blur, at most half its

@@ -96,8 +96,9 @@ class SegmentParameters:
         Fit the level of the tissue around each hyperdense structure together with the amplitude of its blur
         (``calcium.structure_blur(tissue_offset=True)``), instead of taking that tissue at the image's
         background level: plaque above the background was taken for the calcium's blur, and the surplus
-        subtracted from the lumen beside it narrowed a calcified throat.  Off: not yet run through every
-        benchmark (``benchmarks/README.md``).
+        subtracted from the lumen beside it narrowed a calcified throat.  Off: where a thin shell's extent
+        reaches into the lumen, the lumen beside it goes with the shell, and it loses on the family's rescans
+        and on the second generator as a whole (``benchmarks/README.md``).
     barrier : float
         Half level of the barrier (``barrier.half_level_barrier``): voxels darker than this fraction of the
         brightest lumen-like value within ``barrier_reach_mm`` push the front out (a blurred gap to an enhancing
