@@ -546,6 +546,16 @@ def test_a_one_voxel_lumen_and_a_flipped_level_set_are_refused():
         compute_centerlines(sdf.with_array(-sdf.array), sdf.with_array((sdf.array < 0).astype(np.uint8)))
 
 
+def test_a_mask_off_the_level_set_grid_is_refused():
+    """A mask of the right shape moved by 5 mm is not the level set's lumen: refused, not graded."""
+    sdf, _, _, _ = y_shape()
+    mask = sdf.with_array((sdf.array < 0).astype(np.uint8))
+    moved = type(mask)(mask.array, mask.spacing, tuple(np.asarray(mask.origin) + [5.0, 0.0, 0.0]), mask.direction)
+    with pytest.raises(CarotidError, match="not on the level set's grid"):
+        compute_centerlines(sdf, moved)
+    compute_centerlines(sdf, mask)
+
+
 def test_a_level_set_deeper_than_its_lumen_is_refused():
     """One voxel 30 mm deep in a lumen 8 mm across is not a signed distance in mm: refused before the skeleton,
     padded by twice the deepest value, asks for the memory (a -300 mm voxel took 24 GB and the kernel killed

@@ -129,8 +129,11 @@ def compute_centerlines(levelset: Volume, mask: Volume | None = None, *, prune: 
     phi = np.asarray(levelset.array)
     if not np.isfinite(phi).all():
         raise CarotidError("the level set holds NaN or infinite values")
-    if mask is not None and mask.array.shape != phi.shape:
-        raise CarotidError(f"mask shape {mask.array.shape} differs from the level set's {phi.shape}")
+    if mask is not None and not mask.same_grid(levelset):
+        raise CarotidError(f"the mask is not on the level set's grid (shape {mask.array.shape}, origin "
+                           f"{np.round(mask.origin, 2).tolist()} mm, spacing {np.round(mask.spacing, 3).tolist()} mm; "
+                           f"the level set: {phi.shape}, {np.round(levelset.origin, 2).tolist()} mm, "
+                           f"{np.round(levelset.spacing, 3).tolist()} mm)")
     inside = (mask.array > 0) if mask is not None else (phi < 0)
     spacing_kji = levelset.spacing_kji
     lumen, report = largest_component(inside, float(np.prod(spacing_kji)))
