@@ -9,9 +9,6 @@ from carotid.errors import CarotidError
 from carotid.io import Volume
 from carotid.segment.intensity import MAD_TO_SD
 
-MAX_INITIAL_SHARE = 0.5
-"""Largest share of the image an initial region may cover: a lumen fills a few per cent of an angiogram's
-region, the aorta of a thoracic CTA a tenth; a region past half the image is not a lumen (a mask of ones)."""
 FORK_FIT = 0.75
 """Smallest ``fork_score`` of a start that forks: a Y whose trunk and branches each hold one piece in at least
 three slices of four."""
@@ -114,10 +111,6 @@ def mask_levelset(mask: np.ndarray, spacing_kji) -> np.ndarray:
     mask = np.asarray(mask, bool)
     if not mask.any():
         raise CarotidError("the initial region is empty")
-    share = np.count_nonzero(mask) / mask.size
-    if share > MAX_INITIAL_SHARE:
-        raise CarotidError(f"the initial region covers {100 * share:.0f} % of the image: it should mark the lumen, "
-                           f"at most {100 * MAX_INITIAL_SHARE:.0f} %")
     half = 0.5 * float(np.mean(spacing_kji))
     d_out = ndimage.distance_transform_edt(~mask, sampling=spacing_kji).astype(np.float32)
     d_in = ndimage.distance_transform_edt(mask, sampling=spacing_kji).astype(np.float32)

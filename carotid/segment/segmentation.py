@@ -41,6 +41,9 @@ MAX_KERNEL_MM = 100.0
 padded by it."""
 MAX_DENOISE_ITERATIONS = 1000
 """Most curvature-diffusion iterations: a few tens smooth a CT's noise; 1000 take minutes on a 256^3 region."""
+MAX_INITIAL_SHARE = 0.5
+"""Largest share of the image an initial region (``init_mask``) may cover: a lumen fills a few per cent of an
+angiogram's region, the aorta of a thoracic CTA a tenth; past half the image it is not a lumen (a mask of ones)."""
 MAX_DEBLUR_ITERATIONS = 1000
 """Most blur-model refinement steps: 20 are the default, 100 run it to convergence (``benchmarks/refine_budget.py``)."""
 MAX_DEBLUR_GAIN = 10.0
@@ -755,6 +758,10 @@ def segment(volume: Volume, seeds_xyz=None, init_mask: np.ndarray | None = None,
     elif init_mask is not None:
         if init_mask.shape != volume.array.shape:
             raise CarotidError(f"initial region has shape {init_mask.shape}, image has {volume.array.shape}")
+        share = np.count_nonzero(init_mask) / init_mask.size
+        if share > MAX_INITIAL_SHARE:
+            raise CarotidError(f"the initial region covers {100 * share:.0f} % of the image: it should mark the "
+                               f"lumen, at most {100 * MAX_INITIAL_SHARE:.0f} %")
         phi = mask_levelset(init_mask, spacing)
         sample = lumen_sample(volume.array, np.asarray(init_mask, bool))
         how = "region"
