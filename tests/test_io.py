@@ -252,3 +252,35 @@ def test_a_nifti_voxel_size_of_zero_or_nan_is_refused(tmp_path, size):
     path.write_bytes(gzip.compress(bytes(raw)))
     with pytest.raises(CarotidError, match=r"voxel sizes .* mm \(pixdim\)"):
         read_image(path)
+
+
+@pytest.mark.parametrize("matrix, refused", [("1 0 0 0.5 1 0 0 0 1", True), ("2 0 0 0 1 0 0 0 1", True),
+                                             ("0 1 0 1 0 0 0 0 -1", False)])
+def test_a_metaimage_whose_matrix_is_not_a_rotation_is_refused(tmp_path, matrix, refused):
+    """ITK forces a sheared or scaled TransformMatrix orthogonal with only a warning, and the outputs then lie
+    in a frame rotated from the image's (13 degrees for a shear of 0.5): refused.  A permutation with a flip
+    is a rotation and is read."""
+    np.full((4, 5, 6), 100, np.int16).tofile(tmp_path / "image.raw")
+    (tmp_path / "image.mhd").write_text(
+        "ObjectType = Image\nNDims = 3\nBinaryData = True\nBinaryDataByteOrderMSB = False\n"
+        f"TransformMatrix = {matrix}\nOffset = 0 0 0\nElementSpacing = 0.5 0.5 0.8\nDimSize = 6 5 4\n"
+        "ElementType = MET_SHORT\nElementDataFile = image.raw\n")
+    if refused:
+        with pytest.raises(CarotidError, match="TransformMatrix .* is not a rotation"):
+            read_image(tmp_path / "image.mhd")
+    else:
+        assert read_image(tmp_path / "image.mhd").array.shape == (4, 5, 6)
+
+
+def test_numba_caches_in_the_temporary_folder_when_the_install_is_read_only(monkeypatch, tmp_path):
+    """A read-only install (a container without a home): numba's kernels are cached under the temporary
+    folder instead of stopping the import; a NUMBA_CACHE_DIR the user set is kept, and a writable install
+    keeps numba's own choice."""
+    from carotid import numba_cache_dir
+
+    monkeypatch.setattr("os.access", lambda path, mode: False)
+    folder = numba_cache_dir(tmp_path, {})
+    assert folder is not None and Path(folder).parent == Path(tempfile.gettempdir())
+    assert numba_cache_dir(tmp_path, {"NUMBA_CACHE_DIR": "/somewhere"}) is None
+    monkeypatch.setattr("os.access", lambda path, mode: True)
+    assert numba_cache_dir(tmp_path, {}) is None

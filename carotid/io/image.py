@@ -256,6 +256,26 @@ def itk_messages():
                     messages.append(" ".join(lines))
 
 
+def _metaimage_matrix(path: Path) -> np.ndarray | None:
+    """The 3 x 3 direction matrix a MetaImage header (``.mhd``, or the text ahead of an ``.mha``'s data) states,
+    before ITK reads it: ``TransformMatrix``, ``Rotation`` or ``Orientation``; None when it states none or not
+    nine numbers."""
+    with open(path, "rb") as handle:
+        header = handle.read(65536).decode("latin-1")
+    for line in header.splitlines():
+        key, _, value = line.partition("=")
+        key = key.strip()
+        if key == "ElementDataFile":
+            break
+        if key in ("TransformMatrix", "Rotation", "Orientation"):
+            try:
+                numbers = [float(v) for v in value.split()]
+            except ValueError:
+                return None
+            return np.array(numbers).reshape(3, 3).T if len(numbers) == 9 else None
+    return None
+
+
 def _nifti_scan(path: Path) -> tuple[float, int, tuple]:
     """The fraction of voxel data missing from a NIfTI-1 file, its non-finite voxels and its voxel sizes.
 
@@ -360,6 +380,12 @@ def read_image(path: str | os.PathLike, dtype=np.float32) -> Volume:
         if not all(math.isfinite(h) and h != 0 for h in pixdim):
             raise CarotidError(f"{path}: the header gives voxel sizes {', '.join(f'{h:g}' for h in pixdim)} mm "
                                "(pixdim): a size of 0 or NaN would be read as 1 mm; correct the header")
+    if path.is_file() and path.name.lower().endswith((".mhd", ".mha")):
+        matrix = _metaimage_matrix(path)
+        if matrix is not None and not np.allclose(matrix @ matrix.T, np.eye(3), atol=1e-3):
+            raise CarotidError(f"{path}: the header's TransformMatrix {np.round(matrix, 3).ravel().tolist()} is not a "
+                               "rotation (it shears or scales the grid); ITK would force it orthogonal and every output "
+                               "would lie in another frame: correct the header")
     return _from_sitk(image, str(path), dtype, recorded_slice_thickness(path, image, reader))
 
 
