@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from carotid import __version__
-from carotid.errors import CarotidError
+from carotid.errors import CarotidError, CarotidWarning
 
 # Stage packages that register their own subcommands (``register(subparsers)``), imported lazily.
 STAGE_COMMANDS = ("carotid.centerline.command", "carotid.surface.command", "carotid.mesh.command",
@@ -126,18 +126,18 @@ def cmd_segment(args) -> int:
           f"{sum(rep['iterations'])} iterations, {state}, {rep['seconds']['total_s']:.1f} s")
     quality = rep["intensity"]
     if quality.get("contrast_to_noise") is None:
-        print("warning: the lumen's contrast-to-noise ratio could not be measured (its core, two blur widths inside "
-              "the wall, holds under 100 voxels): the region segmented may not be a vessel's lumen; check the seeds "
-              "or the initial region")
+        warnings.warn("the lumen's contrast-to-noise ratio could not be measured (its core, two blur widths inside "
+                      "the wall, holds under 100 voxels): the region segmented may not be a vessel's lumen; check the "
+                      "seeds or the initial region", CarotidWarning)
     elif quality["contrast_to_noise"] < quality["contrast_to_noise_validated"]:
-        print(f"warning: the lumen's contrast-to-noise ratio is {quality['contrast_to_noise']:.1f} (contrast "
-              f"{quality['contrast']:.4g}, noise {quality['noise']:.3g}), below "
-              f"{quality['contrast_to_noise_validated']:g}, the lowest the segmentation's accuracy was measured at: "
-              "the wall may follow the noise, and a stenosis grade tight or loose")
+        warnings.warn(f"the lumen's contrast-to-noise ratio is {quality['contrast_to_noise']:.1f} (contrast "
+                      f"{quality['contrast']:.4g}, noise {quality['noise']:.3g}), below "
+                      f"{quality['contrast_to_noise_validated']:g}, the lowest the segmentation's accuracy was "
+                      "measured at: the wall may follow the noise, and a stenosis grade tight or loose", CarotidWarning)
     if rep["topology"]["handles"]:
-        print(f"warning: the lumen has {rep['topology']['handles']} handle(s), where a vessel tree has none: vessels "
-              "bridged where the image does not resolve the gap between them, or tunnels through the lumen; check the "
-              "centerlines and the grade")
+        warnings.warn(f"the lumen has {rep['topology']['handles']} handle(s), where a vessel tree has none: vessels "
+                      "bridged where the image does not resolve the gap between them, or tunnels through the lumen; "
+                      "check the centerlines and the grade", CarotidWarning)
     for change in rep["handles_removed"]:
         what = "cut a bridge" if change["kind"] == "cut" else "filled a tunnel"
         print(f"removed {change['handles_removed']} handle(s) of the lumen: {what} up to "

@@ -47,12 +47,12 @@ def test_segment_warns_of_a_lumen_noisier_than_validated(tmp_path, capsys):
     noisy = tmp_path / "noisy"
     assert main(["phantom", str(noisy), "--noise", "70", "--seed", "3"]) == 0
     seed = json.loads((noisy / "phantom.json").read_text())["seeds_mm"]["CCA"]
-    code, out, _ = run_and_capture(capsys, ["segment", noisy / "image.nii.gz", "-o", tmp_path / "case", "--seed",
-                                            *seed])
+    code, out, err = run_and_capture(capsys, ["segment", noisy / "image.nii.gz", "-o", tmp_path / "case", "--seed",
+                                              *seed])
     quality = json.loads((tmp_path / "case" / "segmentation" / "report.json").read_text())["intensity"]
     assert quality["noise"] == pytest.approx(70.0, rel=0.1)
     assert code == 0 and quality["contrast_to_noise"] < quality["contrast_to_noise_validated"]
-    assert f"contrast-to-noise ratio is {quality['contrast_to_noise']:.1f}" in out
+    assert f"carotid: warning: the lumen's contrast-to-noise ratio is {quality['contrast_to_noise']:.1f}" in err
 
 
 def test_segment_options_reach_the_parameters(phantom_dir, tmp_path, capsys):
@@ -116,8 +116,8 @@ def test_segment_cuts_a_bridged_loop_and_grades_the_artery_not_the_bridge(tmp_pa
     assert abs(graded["nascet"] - true["nascet"]) <= 0.05
     assert abs(graded["min_diameter_mm"] - true["min_diameter_mm"]) <= 0.25
 
-    code, out, _ = run_and_capture(capsys, ["segment", image, "-o", tmp_path / "kept", *seeds, "--handles", "0"])
-    assert code == 0 and "warning: the lumen has 1 handle(s)" in out and "removed" not in out
+    code, out, err = run_and_capture(capsys, ["segment", image, "-o", tmp_path / "kept", *seeds, "--handles", "0"])
+    assert code == 0 and "carotid: warning: the lumen has 1 handle(s)" in err and "removed" not in out + err
     report = json.loads((tmp_path / "kept" / "segmentation" / "report.json").read_text())
     assert report["topology"] == {"components": 1, "handles": 1} and report["handles_removed"] == []
     failed = [c.quantity for c in quality_checks(report, {}, {}, {}) if not c.passed]
