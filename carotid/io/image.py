@@ -384,8 +384,8 @@ def read_image(path: str | os.PathLike, dtype=np.float32) -> Volume:
         matrix = _metaimage_matrix(path)
         if matrix is not None and not np.allclose(matrix @ matrix.T, np.eye(3), atol=1e-3):
             raise CarotidError(f"{path}: the header's TransformMatrix {np.round(matrix, 3).ravel().tolist()} is not a "
-                               "rotation (it shears or scales the grid); ITK would force it orthogonal and every output "
-                               "would lie in another frame: correct the header")
+                               "rotation (it shears or scales the grid); ITK would force it orthogonal and every "
+                               "output would lie in another frame: correct the header")
     return _from_sitk(image, str(path), dtype, recorded_slice_thickness(path, image, reader))
 
 
