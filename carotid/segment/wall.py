@@ -170,7 +170,8 @@ def outer_wall(volume: Volume, lumen: np.ndarray, ghat_g, params, progress=None)
     Returns
     -------
     wall : ndarray of bool, same shape
-        Lumen, thrombus and wall; before component selection.
+        Lumen, thrombus and wall (the lumen whole, unless ``wall_open_mm`` cuts a side branch); before
+        component selection.
     report : dict
         Thrombus level (median and 5th-95th percentiles over the ring, HU), iterations, convergence
         and seconds of the stage.
@@ -191,7 +192,9 @@ def outer_wall(volume: Volume, lumen: np.ndarray, ghat_g, params, progress=None)
     result = evolve(mask_levelset(lumen, spacing), ghat, g, spacing, alpha=params.wall_alpha, cfl=params.cfl,
                     max_iterations=params.max_iterations, tolerance=params.tolerance, progress=progress)
     del ghat, g
-    wall = close_and_open(result.phi < 0, params.wall_close_mm, params.wall_open_mm, spacing)
+    # The whole vessel holds its lumen: where the front fell back inside it (the curvature term narrows a
+    # carotid a few millimetres across that no thrombus surrounds), the lumen is kept.
+    wall = close_and_open((result.phi < 0) | lumen, params.wall_close_mm, params.wall_open_mm, spacing)
     if params.wall_open_mm > 0 and not wall.any():
         raise CarotidError(f"no ball of radius wall_open_mm = {params.wall_open_mm:g} mm fits in the vessel: "
                            "choose a smaller one")
