@@ -15,7 +15,8 @@ lumen, and the outer-wall stage (``carotid.segment.wall``: lumen,
 thrombosed false lumen and wall) after the best set, whose whole-vessel
 mask is then scored: with the thrombus level measured locally (the default),
 as one median, or set by hand, and with the trunk step (the aorta without its
-branches and leaks) at a few local-level scales.  Every run is capped at ``MAX_ITERATIONS`` per stage so that a
+branches and leaks) at a few local-level scales; and the outer-wall stage after
+the defaults, with and without the trunk step.  Every run is capped at ``MAX_ITERATIONS`` per stage so that a
 front that leaks into the heart cannot run for many minutes; whether it
 converged is reported.  GAC (settings in ``GAC``) runs from the same seed
 sphere as the best set, capped at ``GAC_STOP.max_iterations`` because it is
@@ -50,10 +51,13 @@ from carotid.segment.wall import close_and_open, trunk
 
 DATA = Path("/work/shared/data/thoracic-cta-totalseg/models")
 TARGET_DICE = 0.85
+FIXED_TOP_HU = 700.0
+"""The window's top when it was a fixed HU constant (before it was estimated from the image): the share of each
+region above it is what the fold darkened."""
 MAX_ITERATIONS = 1000
-BEST = {"seed_radius_mm": 10.0, "sigma_mm": 2.0, "potential_scale": 0.3, "hu_low": 100.0, "hu_high": 700.0,
+BEST = {"seed_radius_mm": 10.0, "sigma_mm": 2.0, "potential_scale": 0.3, "window": [100.0, 700.0],
         "kernel_radius_mm": 5.0, "alpha": 0.45, "refine_radius_mm": 0.0}
-WALL = {**BEST, "hu_low": 50.0, "wall": True}
+WALL = {**BEST, "window": [50.0, 700.0], "wall": True}
 MORPHOLOGY_MM = [(0.0, 6.0), (6.0, 6.0), (6.0, 7.5), (9.0, 6.0), (9.0, 7.5), (9.0, 9.0), (12.0, 9.0)]
 TRUNK_MM = 5.0
 TRUNK_SWEEP_MM = [3.0, 4.0, 5.0, 6.0, 8.0]
@@ -61,13 +65,15 @@ CONFIGS = {
     "defaults": {},
     "seed_radius_10mm": {"seed_radius_mm": 10.0},
     "best_found": BEST,
-    "best_found_true_lumen_window": {**BEST, "hu_low": 200.0, "hu_high": 800.0},
+    "best_found_true_lumen_window": {**BEST, "window": [200.0, 800.0]},
     "outer_wall": WALL,
     "outer_wall_one_level": {**WALL, "wall_level_mm": 0.0},
     "outer_wall_level_150": {**WALL, "wall_hu_high": 150.0},
     "outer_wall_trunk": {**WALL, "wall_trunk_mm": TRUNK_MM},
     "outer_wall_trunk_level_10mm": {**WALL, "wall_trunk_mm": TRUNK_MM, "wall_level_mm": 10.0},
     "outer_wall_trunk_level_25mm": {**WALL, "wall_trunk_mm": TRUNK_MM, "wall_level_mm": 25.0},
+    "defaults_outer_wall": {"wall": True},
+    "defaults_outer_wall_trunk": {"wall": True, "wall_trunk_mm": TRUNK_MM},
 }
 QUICK_CONFIGS = ("best_found",)
 GAC = GacSetting("sigmoid", 1.5, -10.0, 50.0, 1.0, 0.2, 3.0)
@@ -158,7 +164,7 @@ def morphology_sweep(wall: np.ndarray, data: dict, seed_kji: np.ndarray) -> dict
     spacing = data["ct"].spacing_kji
     out = {}
     for close, open_ in MORPHOLOGY_MM:
-        mask = keep_components(close_and_open(wall, close, open_, spacing), seed_kji[None])
+        mask = keep_components(close_and_open(wall, close, open_, spacing), seed_kji, spacing)
         out[f"close_{close:g}_open_{open_:g}"] = dice(mask, data["aorta"])
     return out
 
@@ -166,7 +172,7 @@ def morphology_sweep(wall: np.ndarray, data: dict, seed_kji: np.ndarray) -> dict
 def trunk_sweep(wall: np.ndarray, data: dict, seed_kji: np.ndarray) -> dict:
     """Dice against the aorta mask of the trunk of ``wall`` at each margin of ``TRUNK_SWEEP_MM``, seed's component."""
     spacing = data["ct"].spacing_kji
-    return {f"margin_{margin:g}": dice(keep_components(trunk(wall, spacing, margin), seed_kji), data["aorta"])
+    return {f"margin_{margin:g}": dice(keep_components(trunk(wall, spacing, margin), seed_kji, spacing), data["aorta"])
             for margin in TRUNK_SWEEP_MM}
 
 
@@ -192,7 +198,7 @@ def main() -> None:
                  "reference": "TotalSegmentator model outputs, not manual truth"},
         "seed": {"rule": "voxel deepest inside aorta.nii.gz (distance transform in mm)",
                  "kji": kji, "world_mm": seed_xyz, "depth_mm": depth, "hu": float(ct.array[tuple(kji)])},
-        "hu_statistics": hu_statistics(ct.array, reference_regions(data), SegmentParameters().hu_high),
+        "hu_statistics": hu_statistics(ct.array, reference_regions(data), FIXED_TOP_HU),
         "max_iterations_per_stage": MAX_ITERATIONS,
         "target": {"dice_aorta": TARGET_DICE},
         "carotid": {},
