@@ -102,10 +102,8 @@ def run_segmentation(image_path, case_dir, seeds=None, init_mask_path=None, para
     if init_mask_path is not None:
         mask = read_image(init_mask_path, dtype=None)
         if not mask.same_grid(volume):
-            raise CarotidError(f"{init_mask_path}: the initial region is not on the image's grid (shape "
-                               f"{mask.array.shape}, origin {np.round(mask.origin, 2).tolist()} mm, spacing "
-                               f"{np.round(mask.spacing, 3).tolist()} mm; the image: {volume.array.shape}, "
-                               f"{np.round(volume.origin, 2).tolist()} mm, {np.round(volume.spacing, 3).tolist()} mm)")
+            raise CarotidError(f"{init_mask_path}: the initial region is not on the image's grid ({mask.grid()}; "
+                               f"the image: {volume.grid()})")
         init_mask = mask.array > 0
     bar, update = _progress_bar("segment")
     try:

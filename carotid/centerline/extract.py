@@ -28,6 +28,7 @@ from carotid.centerline.skeleton import largest_component, skeletonize_lumen
 from carotid.errors import CarotidError
 from carotid.io import Volume
 from carotid.segment.handles import cavities
+from carotid.segment.intensity import region_box
 
 
 def without_voids(levelset: Volume, lumen: np.ndarray) -> Volume:
@@ -79,8 +80,8 @@ def deepest_radius(lumen: np.ndarray, phi: np.ndarray, spacing_kji) -> float:
     """
     spacing_kji = np.asarray(spacing_kji, float)
     deepest = float(-phi[lumen].min())
-    where = np.nonzero(lumen)
-    sides = (np.array([w.max() - w.min() + 1 for w in where]) * spacing_kji).min()
+    box = region_box(lumen, spacing_kji, 0.0)
+    sides = (np.array([b.stop - b.start for b in box]) * spacing_kji).min()
     if deepest > 0.5 * sides + spacing_kji.max():
         raise CarotidError(f"the level set's deepest value inside the lumen, {deepest:.4g} mm, exceeds what a lumen "
                            f"{sides:.1f} mm across can hold: it is not the lumen's signed distance in mm")
@@ -130,10 +131,7 @@ def compute_centerlines(levelset: Volume, mask: Volume | None = None, *, prune: 
     if not np.isfinite(phi).all():
         raise CarotidError("the level set holds NaN or infinite values")
     if mask is not None and not mask.same_grid(levelset):
-        raise CarotidError(f"the mask is not on the level set's grid (shape {mask.array.shape}, origin "
-                           f"{np.round(mask.origin, 2).tolist()} mm, spacing {np.round(mask.spacing, 3).tolist()} mm; "
-                           f"the level set: {phi.shape}, {np.round(levelset.origin, 2).tolist()} mm, "
-                           f"{np.round(levelset.spacing, 3).tolist()} mm)")
+        raise CarotidError(f"the mask is not on the level set's grid ({mask.grid()}; the level set: {levelset.grid()})")
     inside = (mask.array > 0) if mask is not None else (phi < 0)
     spacing_kji = levelset.spacing_kji
     lumen, report = largest_component(inside, float(np.prod(spacing_kji)))

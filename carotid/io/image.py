@@ -95,6 +95,11 @@ class Volume:
         ijk = (rel @ np.linalg.inv(self.direction).T) / np.asarray(self.spacing)
         return ijk[..., ::-1]
 
+    def grid(self) -> str:
+        """The grid in words, for messages: shape (k, j, i), origin (mm) and spacing (mm)."""
+        return (f"shape {self.array.shape}, origin {np.round(self.origin, 2).tolist()} mm, "
+                f"spacing {np.round(self.spacing, 3).tolist()} mm")
+
     def same_grid(self, other: "Volume", tol_mm: float = 1e-3) -> bool:
         """Whether ``other`` has the same shape and voxel centres (to ``tol_mm`` over the whole grid)."""
         if other.array.shape != self.array.shape:
@@ -359,6 +364,12 @@ def read_image(path: str | os.PathLike, dtype=np.float32) -> Volume:
     path = Path(path)
     if not path.exists():
         raise CarotidError(f"{path}: no such file or folder")
+    if path.is_file() and path.name.lower().endswith((".mhd", ".mha")):
+        matrix = _metaimage_matrix(path)
+        if matrix is not None and not np.allclose(matrix @ matrix.T, np.eye(3), atol=1e-3):
+            raise CarotidError(f"{path}: the header's TransformMatrix {np.round(matrix, 3).ravel().tolist()} is not a "
+                               "rotation (it shears or scales the grid); ITK would force it orthogonal and every "
+                               "output would lie in another frame: correct the header")
     failure = None
     with itk_messages() as messages:
         try:
@@ -380,12 +391,6 @@ def read_image(path: str | os.PathLike, dtype=np.float32) -> Volume:
         if not all(math.isfinite(h) and h != 0 for h in pixdim):
             raise CarotidError(f"{path}: the header gives voxel sizes {', '.join(f'{h:g}' for h in pixdim)} mm "
                                "(pixdim): a size of 0 or NaN would be read as 1 mm; correct the header")
-    if path.is_file() and path.name.lower().endswith((".mhd", ".mha")):
-        matrix = _metaimage_matrix(path)
-        if matrix is not None and not np.allclose(matrix @ matrix.T, np.eye(3), atol=1e-3):
-            raise CarotidError(f"{path}: the header's TransformMatrix {np.round(matrix, 3).ravel().tolist()} is not a "
-                               "rotation (it shears or scales the grid); ITK would force it orthogonal and every "
-                               "output would lie in another frame: correct the header")
     return _from_sitk(image, str(path), dtype, recorded_slice_thickness(path, image, reader))
 
 
