@@ -203,7 +203,7 @@ def read_manifest(path: str | Path, default_config: str | Path | None = None) ->
     """
     path = Path(path)
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise CarotidError(f"{path}: cannot read the manifest ({exc.strerror})") from None
     except UnicodeDecodeError:
@@ -359,7 +359,7 @@ def _cell(value) -> str:
 def write_cohort(rows: list[dict], path: Path) -> Path:
     """Write ``cohort.csv`` and, beside it, ``cohort.json`` (columns with unit and meaning, thresholds), atomically."""
     with atomic_path(path) as tmp:
-        with open(tmp, "w", newline="") as handle:
+        with open(tmp, "w", newline="", encoding="utf-8") as handle:
             writer = csv.DictWriter(handle, fieldnames=list(COHORT_COLUMNS))
             writer.writeheader()
             writer.writerows({k: _cell(v) for k, v in row.items()} for row in rows)

@@ -177,7 +177,7 @@ def cmd_demo(args) -> int:
     case = out / "case"
     truth = read_image(out / "phantom" / "truth_mask.nii.gz", dtype=np.uint8).array > 0
     mask = read_image(case / "segmentation" / "mask.nii.gz", dtype=np.uint8).array > 0
-    report = json.loads((case / "segmentation" / "report.json").read_text())
+    report = json.loads((case / "segmentation" / "report.json").read_text(encoding="utf-8"))
     print(f"   segmentation: lumen {report['lumen_volume_mm3']:.0f} mm^3, "
           f"Dice against the truth {dice(mask, truth):.3f}, {report['seconds']['total_s']:.1f} s")
     print(f"results are in {out.resolve()}; open {(case / 'report.html').resolve()}")

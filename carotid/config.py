@@ -109,7 +109,7 @@ class Config:
         """Read and validate a TOML file; the files it names (``FILE_KEYS``) are relative to its folder."""
         path = Path(path)
         try:
-            data = tomllib.loads(path.read_text())
+            data = tomllib.loads(path.read_text(encoding="utf-8"))
         except FileNotFoundError:
             raise CarotidError(f"{path}: no such config file") from None
         except OSError as exc:

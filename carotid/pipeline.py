@@ -115,7 +115,7 @@ def read_case(case_dir: Path) -> dict:
     if not path.exists():
         return {"stages": {}}
     try:
-        record = json.loads(path.read_text())
+        record = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError) as exc:
         raise CarotidError(f"{path} is corrupt ({exc}); delete it to start the case afresh") from None
     if not isinstance(record, dict) or not isinstance(record.get("stages"), dict):

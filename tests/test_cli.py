@@ -110,7 +110,8 @@ def test_segment_cuts_a_bridged_loop_and_grades_the_artery_not_the_bridge(tmp_pa
     assert [c["kind"] for c in report["handles_removed"]] == ["cut"]
     assert all(c.passed for c in quality_checks(report, {}, {}, {}))
     code, out, _ = run_and_capture(capsys, ["report", tmp_path / "case"])
-    assert code == 0 and "1: 1 bridge(s) cut, 0 tunnel(s) filled" in (tmp_path / "case" / "report.html").read_text()
+    page = (tmp_path / "case" / "report.html").read_text(encoding="utf-8")
+    assert code == 0 and "1: 1 bridge(s) cut, 0 tunnel(s) filled" in page
     levelset = read_image(tmp_path / "case" / "segmentation" / "levelset.nii.gz")
     graded, true = (stenosis(compute_centerlines(volume).branch("ICA")) for volume in (levelset, p.sdf))
     assert abs(graded["nascet"] - true["nascet"]) <= 0.05

@@ -299,7 +299,7 @@ def test_regions_of_the_demo_reach_indices_summary_cohort_and_report(demo_run):
     assert row["ica_low_tawss_area_fraction"] == stats["ICA"]["low_tawss_area_fraction"]
     assert row["bifurcation_angle_deg"] == geometry["bifurcation_angle_deg"]
     assert row["eca_planarity_deg"] == geometry["branches"]["ECA"]["planarity_deg"]
-    page = (case / "report.html").read_text()
+    page = (case / "report.html").read_text(encoding="utf-8")
     table = re.search(r"<caption>Wall regions: area with low TAWSS.*?</table>", page, re.S)[0]
     rows = {row[0]: row[1:] for row in (re.findall(r"<td>(.*?)</td>", r) for r in re.findall(r"<tr>(.*?)</tr>", table))
             if row}

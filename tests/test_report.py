@@ -21,7 +21,7 @@ def non_blank(png: bytes) -> bool:
 def test_report_is_self_contained_with_non_blank_pictures(demo_run):
     proc, out = demo_run
     assert proc.returncode == 0, proc.stderr
-    page = (out / "case" / "report.html").read_text()
+    page = (out / "case" / "report.html").read_text(encoding="utf-8")
     assert not re.search(r'src="(?!data:)', page), "every picture must be embedded"
     pictures = re.findall(r'src="data:image/png;base64,([^"]+)"', page)
     assert pictures, "the report has no pictures"
@@ -95,7 +95,8 @@ def test_verdict_states_the_grading_of_geometry_json(demo_run):
     proc, out = demo_run
     assert proc.returncode == 0, proc.stderr
     grade = json.loads((out / "case" / "geometry.json").read_text())["stenosis"]
-    verdict = re.search(r'<div class="verdict".*?</table>', (out / "case" / "report.html").read_text(), re.S)[0]
+    page = (out / "case" / "report.html").read_text(encoding="utf-8")
+    verdict = re.search(r'<div class="verdict".*?</table>', page, re.S)[0]
     assert f"NASCET {100 * grade['nascet']:.1f} %" in verdict
     assert f"{100 * grade['ecst']:.1f} %" in verdict
     for key in ("min_diameter_mm", "distal_diameter_mm", "local_diameter_mm"):
@@ -114,7 +115,8 @@ def test_first_page_shows_the_virtual_duplex_of_summary_json(demo_run):
     proc, out = demo_run
     assert proc.returncode == 0, proc.stderr
     duplex = json.loads((out / "case" / "flow" / "summary.json").read_text())["duplex"]
-    table = re.search(r'id="duplex".*?</div></div>', _first_page((out / "case" / "report.html").read_text()), re.S)[0]
+    page = (out / "case" / "report.html").read_text(encoding="utf-8")
+    table = re.search(r'id="duplex".*?</div></div>', _first_page(page), re.S)[0]
     ica, cca = duplex["gates"]["ICA"], duplex["gates"]["CCA"]
     for text in (f"<th>ICA PSV</th><td>{ica['psv_cm_s']:.0f} cm/s</td><td>{html_escape(duplex['sru']['by_psv'])}",
                  f"<th>ICA EDV</th><td>{ica['edv_cm_s']:.0f} cm/s</td><td>{html_escape(duplex['sru']['by_edv'])}",
@@ -143,7 +145,7 @@ def html_escape(text: str) -> str:
 def test_first_page_holds_verdict_profile_maps_and_flow(demo_run):
     proc, out = demo_run
     assert proc.returncode == 0, proc.stderr
-    first = _first_page((out / "case" / "report.html").read_text())
+    first = _first_page((out / "case" / "report.html").read_text(encoding="utf-8"))
     for anchor in ('id="verdict"', 'id="profile"', 'id="wss-maps"', 'id="warnings"'):
         assert anchor in first
     maps = re.search(r'id="wss-maps".*?</div>', first, re.S)[0]
@@ -156,7 +158,7 @@ def test_wall_maps_state_their_clipping(demo_run):
     proc, out = demo_run
     assert proc.returncode == 0, proc.stderr
     wall = pv_read(out / "case" / "flow" / "indices.vtp")
-    first = _first_page((out / "case" / "report.html").read_text())
+    first = _first_page((out / "case" / "report.html").read_text(encoding="utf-8"))
     for name in ("TAWSS", "RRT", "ECAP"):
         top = np.percentile(np.asarray(wall[name]), 98)
         assert f"clipped at the 98th percentile, {top:.3g}" in first, name
@@ -188,7 +190,7 @@ def test_detail_tables_are_readable(demo_run):
 
     proc, out = demo_run
     assert proc.returncode == 0, proc.stderr
-    page = (out / "case" / "report.html").read_text()
+    page = (out / "case" / "report.html").read_text(encoding="utf-8")
     assert "values]" not in page
     segmentation = json.loads((out / "case" / "segmentation" / "report.json").read_text())
     assert segmentation["wall"] is None  # the wall stage is off in the demo: none of its parameters show
@@ -216,7 +218,7 @@ def test_report_of_a_case_without_case_json(demo_run, tmp_path):
     for item in (out / "case").iterdir():
         if item.name not in ("case.json", "report.html"):
             (shutil.copytree if item.name == "segmentation" else os.symlink)(item, case / item.name)
-    page = build_report(case).read_text()
+    page = build_report(case).read_text(encoding="utf-8")
     assert "CT slices omitted" not in page  # the segmentation records its image
     assert "could not be built" not in page
     assert 'id="verdict"' in page and 'id="wss-maps"' in page
@@ -225,7 +227,7 @@ def test_report_of_a_case_without_case_json(demo_run, tmp_path):
     report = json.loads(record.read_text())
     del report["image"]["path"]
     record.write_text(json.dumps(report))
-    page = build_report(case).read_text()
+    page = build_report(case).read_text(encoding="utf-8")
     assert "CT slices omitted: the input CT image is not recorded" in page
 
 
@@ -235,7 +237,7 @@ def _report_lines(capfd, case):
 
     code = main(["report", str(case)])
     err = capfd.readouterr().err.strip().splitlines()
-    return code, err, (case / "report.html").read_text()
+    return code, err, (case / "report.html").read_text(encoding="utf-8")
 
 
 def test_an_unreadable_record_is_a_warning_not_a_stage_that_has_not_run(tmp_path, capfd):
@@ -272,3 +274,26 @@ def test_a_junk_vtk_file_in_the_case_is_one_warning_without_vtk_output(tmp_path,
     assert "flow/summary.json could not be read: not a JSON object (it holds null)" in err[0]
     assert "flow/indices.vtp could not be read: not a readable wall indices file (Error parsing XML" in err[1]
     assert "flow/indices.vtp could not be read" in page and "could not be built" not in page
+
+
+def test_the_report_is_utf8_whatever_the_locale(demo_run, tmp_path):
+    """The page declares utf-8 and is written so: in a process whose locale is plain ASCII (C, without
+    Python's UTF-8 mode) its units (mm³, °) and dashes used to stop the report with an internal error."""
+    import os
+    import sys
+
+    proc, out = demo_run
+    assert proc.returncode == 0, proc.stderr
+    case = tmp_path / "case"
+    case.mkdir()
+    for item in (out / "case").iterdir():
+        if item.name != "report.html":
+            os.symlink(item, case / item.name)
+    env = {**os.environ, "LC_ALL": "C", "PYTHONUTF8": "0", "PYTHONCOERCECLOCALE": "0"}
+    code = ("import sys; from pathlib import Path; from carotid.report import build_report; "
+            "build_report(Path(sys.argv[1]))")
+    run = subprocess.run([sys.executable, "-c", code, str(case)], env=env, capture_output=True, text=True,
+                         encoding="utf-8")
+    assert run.returncode == 0, run.stderr
+    page = (case / "report.html").read_text(encoding="utf-8")
+    assert "<meta charset='utf-8'>" in page and "mm³" in page

@@ -164,7 +164,7 @@ def test_first_page_shows_cycle_state_partial_indices_and_convergence_study(demo
 
     proc, out = demo_run
     assert proc.returncode == 0, proc.stderr
-    demo_page = (out / "case" / "report.html").read_text()
+    demo_page = (out / "case" / "report.html").read_text(encoding="utf-8")
     assert "No convergence study (carotid simulate --convergence)" in demo_page[:demo_page.index("<h2>Details")]
     case = _copy_case(out / "case", tmp_path / "case")
     cycles = [{"cycle": 1, "tawss_mean_pa": 1.8123, "relative_change": None, "mean_change": None},

@@ -394,7 +394,7 @@ def run_convergence(case_dir, params, refinement: float = 1.5, time_levels: bool
         if not (case_dir / name).is_file():
             raise CarotidError(f"the convergence study needs {case_dir / name}: run the earlier stages first")
     surface = read_vtk(case_dir / "surface.vtp", "surface", remedy="rerun `carotid surface`")
-    case_quality = json.loads((case_dir / "mesh_quality.json").read_text())
+    case_quality = json.loads((case_dir / "mesh_quality.json").read_text(encoding="utf-8"))
     recorded = case_quality["parameters"]
     branches = read_centerlines(case_dir / "centerlines.vtp").branches
     names = [b.name for b in branches] + ["whole wall"]

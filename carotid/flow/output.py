@@ -149,7 +149,7 @@ class FlowWriter:
                                            ("wall.h5:/points", (self.n_wall, 3), np.float64), wall)}
         for fname, text in docs.items():
             with atomic_path(self.dir / fname) as tmp:
-                tmp.write_text(text)
+                tmp.write_text(text, encoding="utf-8")
 
     def read_wall(self, name: str, since: float) -> tuple[np.ndarray, np.ndarray]:
         """Times (k,) and values (k, ...) of wall field ``name`` at the output steps with time >= ``since``."""

@@ -308,7 +308,7 @@ class ProbeRecorder:
         flow_dir = Path(flow_dir)
         times, values = self.arrays()
         with atomic_path(flow_dir / "probes.csv") as tmp:
-            with open(tmp, "w", newline="") as handle:
+            with open(tmp, "w", newline="", encoding="utf-8") as handle:
                 writer = csv.writer(handle)
                 writer.writerow(self.probes.columns())
                 writer.writerows(np.column_stack([times, values.reshape(len(times), -1)]).tolist())
@@ -327,7 +327,7 @@ class ProbeRecorder:
                                   ("probes.h5:/points", (k, 3), np.float64), steps)
         with atomic_path(flow_dir / "probes.xdmf") as tmp:
             tmp.write_text(document.replace('TopologyType="Polyvertex"',
-                                            'TopologyType="Polyvertex" NodesPerElement="1"'))
+                                            'TopologyType="Polyvertex" NodesPerElement="1"'), encoding="utf-8")
         return [flow_dir / "probes.csv", flow_dir / "probes.xdmf"]
 
 
@@ -346,7 +346,7 @@ def read_probe_csv(path, start: int = 1) -> list[tuple[str, tuple[float, float, 
     """
     path = Path(path)
     try:
-        lines = path.read_text().splitlines()
+        lines = path.read_text(encoding="utf-8").splitlines()
     except (OSError, UnicodeDecodeError) as exc:
         raise CarotidError(f"cannot read the probe file {path}: {exc}") from None
     probes = []

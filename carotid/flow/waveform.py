@@ -265,7 +265,7 @@ def read_waveform_csv(path, period: float | None = None) -> Waveform:
     """
     path = Path(path)
     try:
-        lines = path.read_text().splitlines()
+        lines = path.read_text(encoding="utf-8").splitlines()
     except (OSError, UnicodeDecodeError) as exc:
         raise CarotidError(f"cannot read waveform file {path}: {exc}") from None
     rows, linenos, seen_header = [], [], False

@@ -68,7 +68,7 @@ def atomic_path(path: str | os.PathLike):
 def read_json(path: str | os.PathLike) -> dict:
     """A JSON record, or an empty dict when it is missing or unreadable (a stage that has not run)."""
     try:
-        return json.loads(Path(path).read_text())
+        return json.loads(Path(path).read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return {}
 
@@ -91,7 +91,7 @@ def read_record(path: str | Path, remedy: str) -> dict | None:
     if not path.exists():
         return None
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, ValueError) as exc:
         raise CarotidError(f"{path}: not valid JSON ({exc}); {remedy}") from None
     if not isinstance(data, dict):
@@ -103,7 +103,7 @@ def write_json(data, path: str | os.PathLike) -> Path:
     """Write ``data`` as indented JSON, atomically."""
     path = Path(path)
     with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(data, indent=2) + "\n")
+        tmp.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
     return path
 
 

@@ -172,7 +172,7 @@ def recorded_slice_thickness(path: Path, image: sitk.Image, reader: sitk.ImageSe
     if not sidecar.is_file():
         return None
     try:
-        fields = json.loads(sidecar.read_text())
+        fields = json.loads(sidecar.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
         warnings.warn(f"{sidecar}: sidecar is not readable JSON ({error}); its slice thickness is ignored",
                       CarotidWarning, stacklevel=2)

@@ -57,7 +57,7 @@ def split_cells(mesh: pv.UnstructuredGrid) -> tuple[np.ndarray, np.ndarray, np.n
 def recorded_caps(case_dir: Path) -> list[dict]:
     """The caps the surface stage recorded in ``case_dir/geometry.json`` (``[]`` when there are none)."""
     try:
-        return json.loads((Path(case_dir) / "geometry.json").read_text()).get("caps", [])
+        return json.loads((Path(case_dir) / "geometry.json").read_text(encoding="utf-8")).get("caps", [])
     except (OSError, ValueError):
         return []
 
@@ -174,7 +174,7 @@ def write_mesh(mesh: pv.UnstructuredGrid, case_dir: str | os.PathLike, quality: 
         write_xdmf(points, tets, region.astype(np.int32), triangles, labels.astype(np.int32), names, staging)
         if quality is not None:
             report = {**quality, "groups": {name: label for label, name in names.items()}}
-            (staging / "mesh_quality.json").write_text(json.dumps(report, indent=2) + "\n")
+            (staging / "mesh_quality.json").write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
         for name in FILES:
             if (staging / name).exists():
                 os.replace(staging / name, case_dir / name)

@@ -893,7 +893,7 @@ def build_report(case_dir: str | Path) -> Path:
             f"</small></h1>{_guarded(summary_html, case)}<h2>Details</h2>" + "\n".join(details) + "</body></html>")
     path = case_dir / "report.html"
     with atomic_path(path) as tmp:
-        tmp.write_text(page)
+        tmp.write_text(page, encoding="utf-8")
     return path
 
 

@@ -276,7 +276,7 @@ def write_surface(surface: pv.PolyData, case_dir: str | Path, stl: bool = False,
         write_json(quality, case_dir / "surface_quality.json")
     geometry = case_dir / "geometry.json"
     if caps is not None and geometry.is_file():
-        doc = json.loads(geometry.read_text())
+        doc = json.loads(geometry.read_text(encoding="utf-8"))
         doc["caps"] = caps
         write_json(doc, geometry)
     return out
