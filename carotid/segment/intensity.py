@@ -533,9 +533,16 @@ def provisional_window(image: np.ndarray) -> tuple[float, float, float]:
     low, high, ceiling : float
         Window and the level above which voxels are not lumen (inf for MR).
     """
-    lo, hi = np.percentile(_subsample(image), [0.5, 99.9])
-    ceiling = CT_NOT_LUMEN_HU if lo < 0.0 else np.inf
-    return histogram_mode(image), float(min(hi, ceiling)), ceiling
+    hi = float(np.percentile(_subsample(image), 99.9))
+    ceiling = lumen_ceiling(image)
+    return histogram_mode(image), min(hi, ceiling), ceiling
+
+
+def lumen_ceiling(image: np.ndarray) -> float:
+    """The level above which no voxel is lumen: ``CT_NOT_LUMEN_HU`` in a CT image, recognised by negative
+    intensities (fat or air in Hounsfield units; more than 0.5 % of the voxels below 0), inf otherwise (a
+    magnitude MR image, in which bone and calcium are dark)."""
+    return CT_NOT_LUMEN_HU if float(np.percentile(_subsample(image), 0.5)) < 0.0 else np.inf
 
 
 def _subsample(image: np.ndarray) -> np.ndarray:

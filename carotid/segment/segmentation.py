@@ -26,8 +26,8 @@ from carotid.segment.handles import cavities, remove_handles
 from carotid.segment.init import (automatic_region, check_points, fork_seeds, mask_levelset, seed_levelset,
                                   seed_sample)
 from carotid.segment.intensity import (VALIDATED_CONTRAST_TO_NOISE, IntensityModel, estimate_from_sample,
-                                       local_level, local_radius, lumen_noise, provisional_window,
-                                       through_plane_variance)
+                                       local_level, local_radius, lumen_ceiling, lumen_noise,
+                                       provisional_window, through_plane_variance)
 from carotid.segment.join import join_seeds
 from carotid.segment.levelset import evolve, signed_distance
 from carotid.segment.metrics import topology
@@ -673,26 +673,49 @@ def lumen_window(model: IntensityModel, params: SegmentParameters, level=None) -
 
 
 def lumen_sample(array: np.ndarray, region: np.ndarray) -> np.ndarray:
-    """The bright part of a region meant to lie in the lumen: above Otsu's threshold of its voxels.
+    """The part of a region meant to lie in the lumen that is lumen.
 
-    A seed sphere near the wall, or an initial region across it, also holds tissue; its upper Otsu class
-    is lumen in either case.
+    A seed's neighbourhood near the wall, or an initial region across it, also holds tissue, and near a plaque
+    or a dissection flap calcium: the voxels above ``lumen_ceiling`` (calcium and bone in CT) are dropped when
+    they are a minority of the region (a lumen enhanced above it is the majority), then the upper Otsu class
+    of the rest is lumen.  Without the first step Otsu's upper class of lumen, tissue and calcium is calcium.
+
+    Parameters
+    ----------
+    array : ndarray, shape (nk, nj, ni)
+    region : ndarray of bool, same shape
+
+    Returns
+    -------
+    ndarray of bool, same shape, within ``region``
     """
     from skimage.filters import threshold_otsu
 
+    below = region & (array <= lumen_ceiling(array))
+    if 2 * np.count_nonzero(below) > np.count_nonzero(region):
+        region = below
     values = array[region]
     if values.size < 4 or values.max() == values.min():
         return region
     return region & (array > threshold_otsu(values))
 
 
+def sample_radius(radius_mm: float, spacing_kji) -> float:
+    """Radius (mm) of the ball a seed's lumen sample is drawn from: the seed sphere's, and at least two voxels
+    (of the voxel's geometric mean size), a ball of 33 voxels on an isotropic grid, so that the lumen level is
+    a median of many voxels, not of the one or three a 1.5 mm sphere holds in 1.5 mm voxels."""
+    return max(float(radius_mm), 2.0 * float(np.prod(spacing_kji)) ** (1.0 / 3.0))
+
+
 def seed_start(volume: Volume, seeds_xyz: np.ndarray, radius_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Spheres of ``radius_mm`` at the seeds (world mm, shape (n, 3); validated first), the seeds' voxel
-    indices (n, 3) and the lumen sample the intensity model is estimated from (the bright part of the
-    spheres' seed voxels, ``lumen_sample``)."""
+    indices (n, 3) and the lumen sample the intensity model is estimated from (``lumen_sample`` of the balls
+    of ``sample_radius`` at the seeds, with the seeds' own voxels)."""
     phi = seed_levelset(volume, seeds_xyz, radius_mm)
     seeds_kji = volume.world_to_index(seeds_xyz)
-    return phi, seeds_kji, lumen_sample(volume.array, seed_sample(phi, seeds_kji))
+    reach = sample_radius(radius_mm, volume.spacing_kji)
+    around = phi if reach == radius_mm else seed_levelset(volume, seeds_xyz, reach)
+    return phi, seeds_kji, lumen_sample(volume.array, seed_sample(around, seeds_kji))
 
 
 def keep_components(inside: np.ndarray, seeds_kji: np.ndarray | None, spacing_kji,
