@@ -130,6 +130,9 @@ def test_bad_parameters_are_refused():
             make_phantom(**kwargs)
     with pytest.raises(CarotidError, match="outside"):
         make_phantom(noise=1e9)  # saturated int16 before the bound
+    for kwargs in (dict(stenosis=float("nan")), dict(nascet=float("inf")), dict(plaque_angle_deg=float("nan"))):
+        with pytest.raises(CarotidError, match="must be a finite number"):
+            make_phantom(**kwargs)
     with pytest.warns(CarotidWarning, match="does not hold the phantom's CCA seed, ICA seed, ECA seed, bifurcation"):
         make_phantom(extent=(2, 2, 2), spacing=(0.5, 0.5, 0.5))
     with pytest.warns(CarotidWarning, match="does not hold the phantom's ICA seed, ECA seed, ICA stenosis"):

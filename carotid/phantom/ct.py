@@ -447,7 +447,9 @@ def _number(name: str, value, low: float | None = None, high: float | None = Non
         x = float(value)
     except (TypeError, ValueError):
         raise CarotidError(f"{name} must be a number, not {value!r}") from None
-    bad = not math.isfinite(x)
+    if not math.isfinite(x):
+        raise CarotidError(f"{name} must be a finite number, not {value}")
+    bad = False
     if low is not None:
         bad |= x <= low if low_open else x < low
     if high is not None:
