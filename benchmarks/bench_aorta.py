@@ -22,8 +22,8 @@ converged is reported.  GAC (settings in ``GAC``) runs from the same seed
 sphere as the best set, capped at ``GAC_STOP.max_iterations`` because it is
 slow here (3000 iterations did not finish in 5 minutes).  The defaults also run
 from each of 12 seeds where a user might click in the descending aorta's true
-lumen (``sweep_seeds``), so that the true lumen's Dice is known for a seed
-anywhere there, not at one point.
+lumen (``sweep_seeds``), with their own iteration limit, so that the true
+lumen's Dice is known for a seed anywhere there, not at one point.
 
 Figures: Dice against the aorta mask, against the union of true and false
 lumen and against the true lumen alone, sensitivity and precision against the
@@ -139,21 +139,22 @@ def overlap(mask: np.ndarray, data: dict) -> dict:
     return out
 
 
-def run_config(data: dict, seed_xyz: np.ndarray, overrides: dict) -> dict:
-    """carotid's ``segment`` with ``SegmentParameters(**overrides)`` (iterations capped), scored.
+def run_config(data: dict, seed_xyz: np.ndarray, overrides: dict, cap: bool = True) -> dict:
+    """carotid's ``segment`` with ``SegmentParameters(**overrides)`` (iterations capped at ``MAX_ITERATIONS``
+    unless ``cap`` is false), scored.
 
     With the outer-wall stage on, the whole-vessel mask is scored, the lumen's figures go under "lumen";
     without the trunk step, Dice after closing and opening that mask by balls (``MORPHOLOGY_MM``) goes under
     "morphology" and Dice after the trunk step at other margins (``TRUNK_SWEEP_MM``) under "trunk".
     """
-    params = SegmentParameters(**{"max_iterations": MAX_ITERATIONS, **overrides})
+    params = SegmentParameters(**{**({"max_iterations": MAX_ITERATIONS} if cap else {}), **overrides})
     try:
         result, seconds = timed(segment, data["ct"], seeds_xyz=[seed_xyz], params=params)
     except CarotidError as error:
         return {"overrides": overrides, "error": str(error), **overlap(np.zeros_like(data["aorta"]), data)}
     lumen = overlap(result.mask.array > 0, data)
     out = {"overrides": overrides, "seconds": seconds, "iterations": result.report["iterations"],
-           "converged": result.report["converged"]}
+           "converged": result.report["converged"], "chambers": result.report["chambers"]}
     if result.wall is None:
         return {**out, **lumen}
     wall = result.wall.array > 0
@@ -207,12 +208,13 @@ def sweep_seeds(data: dict, seed_kji: np.ndarray, count: int = SWEEP_SEEDS, dept
 
 
 def run_sweep(data: dict, seeds_xyz: np.ndarray) -> dict:
-    """The defaults from each seed of ``sweep_seeds`` alone: Dice with the true lumen per seed, median, worst."""
+    """The defaults (their own iteration limit: a user's run) from each seed of ``sweep_seeds`` alone: Dice
+    with the true lumen per seed, the vessel radius the chamber rule measured at it, median, worst."""
     runs = []
     for seed in seeds_xyz:
-        record = run_config(data, seed, {})
+        record = run_config(data, seed, {}, cap=False)
         runs.append({"seed_mm": seed, **{key: record.get(key) for key in (
-            "dice_true_lumen", "dice_aorta", "iterations", "converged", "seconds", "error")}})
+            "dice_true_lumen", "dice_aorta", "iterations", "converged", "seconds", "error", "chambers")}})
         print("seed", np.round(seed, 2), {key: value for key, value in runs[-1].items() if key != "seed_mm"},
               flush=True)
     scores = np.array([r["dice_true_lumen"] for r in runs])
