@@ -265,6 +265,23 @@ def test_the_lumen_sample_leaves_calcium_out():
     assert np.array_equal(lumen_sample(image, region), lumen)
 
 
+def test_a_bright_outlier_is_not_the_lumen(monkeypatch):
+    """The 31 voxels of a seed's ball inside the thoracic CTA's true lumen (``bench_aorta``'s sweep): Otsu's
+    upper class is the +6 SD voxel and one more, and the lumen level read from them was 614 HU against 479."""
+    from carotid.segment import segmentation
+
+    values = np.array([394, 411, 418, 438, 443, 444, 446, 446, 450, 463, 465, 466, 466, 470, 472, 476, 479, 482,
+                       483, 487, 487, 492, 493, 501, 508, 519, 520, 526, 529, 535, 693], np.float32)
+    image = np.full((3, 8, 8), 40.0, np.float32)
+    region = np.zeros(image.shape, bool)
+    region.flat[np.arange(values.size) + 64] = True
+    image[region] = values
+    sample = segmentation.lumen_sample(image, region)
+    assert np.count_nonzero(sample) >= 10 and abs(np.median(image[sample]) - 479.0) < 30.0
+    monkeypatch.setattr(segmentation, "MIN_LUMEN_SHARE", 0.0)
+    assert np.count_nonzero(segmentation.lumen_sample(image, region)) < 5
+
+
 def graded(p, levelset):
     """NASCET and minimal diameter (mm) of the ICA stenosis graded on ``levelset``."""
     cl = compute_centerlines(p.image.with_array(np.asarray(levelset, np.float32)))

@@ -51,6 +51,8 @@ MAX_DEBLUR_GAIN = 10.0
 oracle's; beyond it the step exceeds the one blur width the wall may move."""
 MAX_SEED_RADIUS_MM = 20.0
 """Largest seed sphere, mm: a thoracic aorta's radius; a larger sphere reaches out of any vessel."""
+MIN_LUMEN_SHARE = 0.1
+"""Smallest share of a seed's neighbourhood (``lumen_sample``) that Otsu's upper class must hold to be its lumen."""
 MAX_SLICE_THICKNESS_MM = 10.0
 """Thickest slice, mm: a 5 mm clinical reconstruction is not an angiogram; 10 mm is past any."""
 
@@ -679,6 +681,9 @@ def lumen_sample(array: np.ndarray, region: np.ndarray) -> np.ndarray:
     or a dissection flap calcium: the voxels above ``lumen_ceiling`` (calcium and bone in CT) are dropped when
     they are a minority of the region (a lumen enhanced above it is the majority), then the upper Otsu class
     of the rest is lumen.  Without the first step Otsu's upper class of lumen, tissue and calcium is calcium.
+    An upper class of fewer than ``MIN_LUMEN_SHARE`` of the voxels is not the lumen around a seed but its
+    outliers (a noise peak, a calcification's halo): it is dropped and the rest split again.  In a ball of 31
+    lumen voxels with one at +6 standard deviations, Otsu's upper class held that voxel and one more.
 
     Parameters
     ----------
@@ -694,10 +699,14 @@ def lumen_sample(array: np.ndarray, region: np.ndarray) -> np.ndarray:
     below = region & (array <= lumen_ceiling(array))
     if 2 * np.count_nonzero(below) > np.count_nonzero(region):
         region = below
-    values = array[region]
-    if values.size < 4 or values.max() == values.min():
-        return region
-    return region & (array > threshold_otsu(values))
+    values = np.sort(array[region])
+    while values.size >= 4 and values[-1] > values[0]:
+        threshold = threshold_otsu(values)
+        upper = values.size - np.searchsorted(values, threshold, side="right")
+        if upper >= MIN_LUMEN_SHARE * values.size:
+            return region & (array > threshold)
+        values = values[:-upper]
+    return region & (array <= values[-1]) if values.size else region
 
 
 def sample_radius(radius_mm: float, spacing_kji) -> float:
