@@ -21,7 +21,7 @@ front that leaks into the heart cannot run for many minutes; whether it
 converged is reported.  GAC (settings in ``GAC``) runs from the same seed
 sphere as the best set, capped at ``GAC_STOP.max_iterations`` because it is
 slow here (3000 iterations did not finish in 5 minutes).  The defaults also run
-from each of 12 seeds where a user might click in the descending aorta's true
+from up to 12 seeds where a user might click in the descending aorta's true
 lumen (``sweep_seeds``), with their own iteration limit, so that the true
 lumen's Dice is known for a seed anywhere there, not at one point.
 
