@@ -250,6 +250,7 @@ def test_a_seed_beside_a_calcified_flap_in_coarse_voxels(monkeypatch):
 def test_the_lumen_sample_leaves_calcium_out():
     """Otsu's upper class of lumen, tissue and calcium is calcium; in CT the voxels above ``CT_NOT_LUMEN_HU``
     go first, unless they are the sample's majority (a lumen enhanced above it)."""
+    from carotid.segment.intensity import CT_NOT_LUMEN_HU, lumen_ceiling
     from carotid.segment.segmentation import lumen_sample
 
     rng = np.random.default_rng(0)
@@ -258,6 +259,7 @@ def test_the_lumen_sample_leaves_calcium_out():
     region[1:3, 2:8, 2:8] = True
     values = np.concatenate([rng.normal(450.0, 20.0, 50), rng.uniform(1000.0, 1700.0, 12), np.full(10, 40.0)])
     image[region] = values.astype(np.float32)
+    assert lumen_ceiling(image) == CT_NOT_LUMEN_HU and lumen_ceiling(image + 200.0) == np.inf  # CT, magnitude MR
     lumen = region & (np.abs(image - 450.0) < 100.0)
     assert np.array_equal(lumen_sample(image, region), lumen)
     image[region & (image > 800.0)] = 40.0
