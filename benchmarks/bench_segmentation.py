@@ -722,7 +722,7 @@ def summarise(cases: list[dict], methods=METHODS) -> dict:
 
 def parse_variant(text: str) -> dict:
     """``"NAME=VALUE[,NAME=VALUE...]"`` -> ``SegmentParameters`` overrides, typed like the defaults (the
-    ``type`` of ``--variant``).
+    ``type`` of ``--variant``); a list field takes its items joined by ``:`` (``window_margins=0.1:0.5``).
 
     Raises
     ------
@@ -734,13 +734,18 @@ def parse_variant(text: str) -> dict:
     out = {}
     for item in text.split(","):
         name, _, value = item.partition("=")
-        if name not in defaults or not value or isinstance(defaults[name], list):
-            raise argparse.ArgumentTypeError(f"{item!r} is not NAME=VALUE with NAME a scalar SegmentParameters field")
-        kind = type(defaults[name])
+        if name not in defaults or not value:
+            raise argparse.ArgumentTypeError(f"{item!r} is not NAME=VALUE with NAME a SegmentParameters field")
+        default = defaults[name]
         try:
-            out[name] = value.lower() in ("1", "true", "yes") if kind is bool else kind(value)
+            if isinstance(default, list):
+                out[name] = [float(part) for part in value.split(":")]
+            else:
+                kind = type(default)
+                out[name] = value.lower() in ("1", "true", "yes") if kind is bool else kind(value)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"{item!r}: {name} takes a {kind.__name__}") from None
+            takes = "numbers joined by :" if isinstance(default, list) else type(default).__name__
+            raise argparse.ArgumentTypeError(f"{item!r}: {name} takes {takes}") from None
     try:
         SegmentParameters(**out).validate()
     except CarotidError as error:
