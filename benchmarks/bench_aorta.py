@@ -184,7 +184,7 @@ def trunk_sweep(wall: np.ndarray, data: dict, seed_kji: np.ndarray) -> dict:
 
 def sweep_seeds(data: dict, seed_kji: np.ndarray, count: int = SWEEP_SEEDS, depth_mm: float = SWEEP_DEPTH_MM,
                 reach_mm: float = SWEEP_REACH_MM, rng_seed: int = 0) -> np.ndarray:
-    """Seeds (world mm, shape (count, 3)) where a user might click in the descending aorta's true lumen.
+    """Seeds (world mm, shape (n, 3), n <= count) where a user might click in the descending aorta's true lumen.
 
     The true lumen's voxels at least ``depth_mm`` inside it and within ``reach_mm`` across the slices of the
     deepest seed's (j, i) (the descending aorta, not the ascending one beside it in the same slices), one
