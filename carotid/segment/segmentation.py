@@ -719,12 +719,12 @@ def sample_radius(radius_mm: float, spacing_kji) -> float:
 def seed_start(volume: Volume, seeds_xyz: np.ndarray, radius_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Spheres of ``radius_mm`` at the seeds (world mm, shape (n, 3); validated first), the seeds' voxel
     indices (n, 3) and the lumen sample the intensity model is estimated from (``lumen_sample`` of the balls
-    of ``sample_radius`` at the seeds, with the seeds' own voxels)."""
+    of ``sample_radius`` at the seeds, with the seeds' own voxels).  The spheres' signed distance less the
+    difference of the radii is the balls'."""
     phi = seed_levelset(volume, seeds_xyz, radius_mm)
     seeds_kji = volume.world_to_index(seeds_xyz)
-    reach = sample_radius(radius_mm, volume.spacing_kji)
-    around = phi if reach == radius_mm else seed_levelset(volume, seeds_xyz, reach)
-    return phi, seeds_kji, lumen_sample(volume.array, seed_sample(around, seeds_kji))
+    grow = np.float32(sample_radius(radius_mm, volume.spacing_kji) - radius_mm)
+    return phi, seeds_kji, lumen_sample(volume.array, seed_sample(phi - grow, seeds_kji))
 
 
 def keep_components(inside: np.ndarray, seeds_kji: np.ndarray | None, spacing_kji,
