@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 import pyvista as pv
 
+from carotid.io import write_json
 from carotid.mesh.boundary import INLET, LABELS, WALL
 from carotid.mesh.core import gmsh_session
 
@@ -174,7 +175,7 @@ def write_mesh(mesh: pv.UnstructuredGrid, case_dir: str | os.PathLike, quality: 
         write_xdmf(points, tets, region.astype(np.int32), triangles, labels.astype(np.int32), names, staging)
         if quality is not None:
             report = {**quality, "groups": {name: label for label, name in names.items()}}
-            (staging / "mesh_quality.json").write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+            write_json(report, staging / "mesh_quality.json")
         for name in FILES:
             if (staging / name).exists():
                 os.replace(staging / name, case_dir / name)
