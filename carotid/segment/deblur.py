@@ -48,7 +48,7 @@ from carotid.segment.intensity import local_level, local_linear_level, region_bo
 def refine(image: np.ndarray, phi: np.ndarray, spacing_kji, lumen: float, background: float, blur_mm: float,
            exclude: np.ndarray | None = None, iterations: int = 20, gain: float = 2.0, smooth_mm: float = 1.0,
            normal: bool = True, level_mm: float = 0.0, linear_level: bool = False, slices: bool = True,
-           thickness_mm: float | None = None, neighbours: bool = False) -> np.ndarray:
+           thickness_mm: float | None = None, neighbours: bool = False, smooth_radius: float = 0.0) -> np.ndarray:
     """Level set moved to the wall that best explains the image under a Gaussian blur.
 
     Parameters
@@ -73,6 +73,11 @@ def refine(image: np.ndarray, phi: np.ndarray, spacing_kji, lumen: float, backgr
         Step length in blur widths per unit of normalised misfit.
     smooth_mm : float
         Extra Gaussian smoothing (mm) of the wall's speed: the model corrects a position, not the noise.
+    smooth_radius : float
+        Where positive, the smoothing is at most this fraction of the lumen's local radius
+        (``wall_radius``), and no less than half ``smooth_mm``: a wall is corrected at the scale of the
+        vessel it bounds, so that a tight throat's notch is not smoothed away with the noise.  0: ``smooth_mm``
+        everywhere.
     normal : bool
         Take the tissue level along each wall normal (``normal_background``); False keeps the shell's
         smoothed mean (``local_background``) everywhere.
@@ -122,6 +127,16 @@ def refine(image: np.ndarray, phi: np.ndarray, spacing_kji, lumen: float, backgr
     sigma_axes = model_blur(sigma_mm, spacing, slices, thickness_mm)
     sigma = sigma_axes / spacing
     smoothing = np.hypot(sigma_axes, smooth_mm) / spacing
+    finer, share = None, None
+    if smooth_radius > 0:
+        finest = 0.5 * smooth_mm
+        near = np.abs(phi0) < band
+        scale = np.clip(smooth_radius * wall_radius(phi0, spacing, near, smooth_mm / smooth_radius + band),
+                        finest, smooth_mm)
+        if np.any(scale < smooth_mm):
+            finer = np.hypot(sigma_axes, finest) / spacing
+            share = np.zeros(phi0.shape, np.float32)
+            share[near] = (smooth_mm - scale) / (smooth_mm - finest)
     ramp = np.float32(ramp_width(spacing))
     step = np.float32(gain * sigma_mm)
     seen_tissue = ndimage.gaussian_filter(tissue, sigma)
@@ -135,11 +150,49 @@ def refine(image: np.ndarray, phi: np.ndarray, spacing_kji, lumen: float, backgr
     for _ in range(iterations):
         lumen_part = ndimage.gaussian_filter(contrast * np.clip(np.float32(0.5) - out / ramp, 0, 1), sigma)
         misfit = np.where(weight, crop - seen_tissue - lumen_part, 0)
-        speed = ndimage.gaussian_filter(misfit, smoothing) / contrast
+        speed = ndimage.gaussian_filter(misfit, smoothing)
+        if finer is not None:  # the speed at the finer scale where the lumen is narrow
+            speed += share * (ndimage.gaussian_filter(misfit, finer) - speed)
+        speed /= contrast
         out = np.clip(out - step * speed, phi0 - np.float32(sigma_mm), phi0 + np.float32(sigma_mm))
     result = np.array(phi, np.float32, copy=True)
     result[box] = out
     return result
+
+
+def wall_radius(phi: np.ndarray, spacing, where: np.ndarray, reach_mm: float) -> np.ndarray:
+    """The lumen's radius beside each voxel of ``where``: the depth of the deepest point along its inward normal.
+
+    From a voxel on or near the wall the ray down ``-grad phi`` runs to the medial axis, where the depth
+    ``-phi`` peaks at the radius of the inscribed ball touching the wall there (the
+    ``MaximumInscribedSphereRadius`` of VMTK's centerlines).  Unlike a ball holding the voxel (the local
+    thickness), it reads a short throat's own radius, not its wider neighbours'.
+
+    Parameters
+    ----------
+    phi : ndarray, float32, shape (nk, nj, ni)
+        Signed distance to the wall, mm, negative inside.
+    spacing : array_like, shape (3,)
+    where : ndarray of bool, same shape
+        Voxels to measure.
+    reach_mm : float
+        Length of the ray, mm: radii beyond it read as ``reach_mm`` less the voxel's distance outside.
+
+    Returns
+    -------
+    ndarray, float32, shape (count of ``where``,)
+    """
+    spacing = np.asarray(spacing, float)
+    idx = np.nonzero(where)
+    normal = np.stack([g[idx] for g in np.gradient(phi, *spacing)], axis=1)
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-6)
+    steps = np.arange(0.0, reach_mm + 1e-9, 0.5 * float(spacing.min()))
+    depth = np.zeros(len(idx[0]), np.float32)
+    start = np.stack(idx, axis=1).astype(np.float32)
+    for t in steps:  # a few dozen steps along the rays, each vectorised over the voxels
+        at = start - np.float32(t) * (normal / spacing).astype(np.float32)
+        depth = np.maximum(depth, -ndimage.map_coordinates(phi, at.T, order=1, mode="nearest"))
+    return depth
 
 
 def reach_mm(blur_mm: float, spacing_kji, thickness_mm: float | None = None) -> float:

@@ -156,6 +156,9 @@ class SegmentParameters:
         Its step length, in blur widths per unit of normalised misfit.
     deblur_smooth_mm : float
         Extra Gaussian smoothing (mm) of the wall's speed in that refinement.
+    deblur_smooth_radius : float
+        Where positive, that smoothing is at most this fraction of the lumen's local radius (and no less than
+        half ``deblur_smooth_mm``): a tight throat is corrected at its own scale (``deblur.refine``).
     deblur_slices : bool
         Blur that refinement's model along each axis by the measured blur plus the part of the voxel's
         boxcar beyond the finest axis's (``deblur.axis_blur``): thick slices blur a throat along the vessel
@@ -261,6 +264,7 @@ class SegmentParameters:
     deblur_iterations: int = 20
     deblur_gain: float = 2.0
     deblur_smooth_mm: float = 1.0
+    deblur_smooth_radius: float = 0.0
     deblur_slices: bool = True
     deblur_linear_level: bool = False
     deblur_neighbours: bool = False
@@ -340,9 +344,9 @@ class SegmentParameters:
              f"denoise_iterations must lie in [0, {MAX_DENOISE_ITERATIONS}]"),
             (self.handle_mm >= 0, "handle_mm must not be negative"),
             (0 <= self.deblur_iterations <= MAX_DEBLUR_ITERATIONS and 0 < self.deblur_gain <= MAX_DEBLUR_GAIN
-             and self.deblur_smooth_mm >= 0,
+             and self.deblur_smooth_mm >= 0 and self.deblur_smooth_radius >= 0,
              f"deblur_iterations must lie in [0, {MAX_DEBLUR_ITERATIONS}], deblur_gain in (0, {MAX_DEBLUR_GAIN:g}], "
-             "deblur_smooth_mm must not be negative"),
+             "deblur_smooth_mm and deblur_smooth_radius must not be negative"),
             (0 <= self.slice_thickness_mm <= MAX_SLICE_THICKNESS_MM,
              f"slice_thickness_mm must lie in [0, {MAX_SLICE_THICKNESS_MM:g}] mm (0: the scan's own)"),
             (self.wall_hu_low < self.wall_contrast_hu and (
@@ -533,6 +537,7 @@ def deblur(image: np.ndarray, phi: np.ndarray, spacing_kji, model: IntensityMode
     sigma = gaussian_part(model.blur, spacing_kji)
     refined = refine(image, phi, spacing_kji, model.lumen, model.background, sigma, exclude,
                      iterations=params.deblur_iterations, gain=params.deblur_gain, smooth_mm=params.deblur_smooth_mm,
+                     smooth_radius=params.deblur_smooth_radius,
                      level_mm=params.level_mm, linear_level=params.deblur_linear_level, slices=params.deblur_slices,
                      neighbours=params.deblur_neighbours, thickness_mm=thickness_mm)
     return refined, model_blur(sigma, spacing_kji, params.deblur_slices, thickness_mm)
