@@ -16,6 +16,7 @@ from carotid.segment.calcium import hyperdense_edge
 from carotid.segment.deblur import normal_background, refine
 from carotid.segment.intensity import (edge_blur, local_level, local_linear_level, through_plane_variance,
                                       wide_gaussian)
+from carotid.segment.levelset import signed_distance
 
 B, A, P = 40.0, 300.0, 1000.0  # tissue, lumen and calcium levels (HU)
 FAT = -100.0
@@ -484,6 +485,38 @@ def test_overlapping_slices_blur_a_throat_by_their_thickness_not_their_spacing()
     # Slices thinner than the pixels still integrate over their own thickness.
     np.testing.assert_allclose(deblur.axis_blur(0.05, [0.2, 0.5, 0.5], 0.2)[0], 0.2 / np.sqrt(12))
     assert deblur.reach_mm(0.6, spacing, 2.1) > deblur.reach_mm(0.6, spacing)
+
+
+def test_the_wall_radius_is_the_throats_own_not_its_neighbours():
+    """Beside a short 1.1 mm throat in a 2 mm tube the ray down the inward normal reaches the throat's axis: the
+    wall there reads the throat's radius, and the tube's wall 6 mm away its own.  No voxel centre lies on the
+    axis, where interpolation cuts the depth's peak: read as the peak's height rather than its place, the tube
+    came out 0.14 mm narrow.  A ray shorter than the radius reads its own length."""
+    _, spacing, sdf = throat_image(slices=1, h=0.3, sigma=0.6, length=1.0, nc=41)
+    z = (np.arange(sdf.shape[0]) - (sdf.shape[0] - 1) / 2) * spacing[0]
+    wall = np.abs(sdf) < 0.2
+    radius = np.zeros(sdf.shape, np.float32)
+    radius[wall] = deblur.wall_radius(sdf, spacing, wall, 4.0)
+    throat, tube = wall & (np.abs(z) < 0.1)[:, None, None], wall & (np.abs(z) > 5.5)[:, None, None]
+    # To a step of the ray and the grid's offset from the axis (the nearest voxel centres lie 0.2 mm off it).
+    assert np.median(radius[throat]) == pytest.approx(1.1, abs=0.12)
+    assert np.median(radius[tube]) == pytest.approx(2.0, abs=0.12)
+    assert np.median(deblur.wall_radius(sdf, spacing, tube, 1.2)) == pytest.approx(1.2, abs=0.12)
+
+
+def test_a_short_throat_is_refined_at_its_own_scale():
+    """A 1.1 mm throat whose narrowing spans about a millimetre each way, blurred by 0.6 mm, from the front an
+    edge-based evolution leaves (the blurred image's half level).  Smoothed over a millimetre, the wall's speed
+    spreads the wider lumen's pull over the throat and the refinement widens it by 0.03 mm; smoothed over
+    at most 0.4 of the radius beside the wall, the throat keeps its width."""
+    image, spacing, sdf = throat_image(slices=1, h=0.3, sigma=0.6, length=1.0, nc=41)
+    half = ndimage.gaussian_filter(image, 0.5) > 0.5 * (A + B)
+    front = signed_distance((ndimage.distance_transform_edt(~half, sampling=spacing)
+                             - ndimage.distance_transform_edt(half, sampling=spacing)).astype(np.float32), spacing, 6.0)
+    assert radius_of(refine(image, front, spacing, A, B, 0.6, smooth_radius=0.4), spacing) == pytest.approx(
+        1.1, abs=0.015)
+    # Mutation: the same smoothing everywhere.
+    assert radius_of(refine(image, front, spacing, A, B, 0.6), spacing) > 1.1 + 0.025
 
 
 def test_the_model_does_not_count_the_voxel_twice():

@@ -161,12 +161,14 @@ def refine(image: np.ndarray, phi: np.ndarray, spacing_kji, lumen: float, backgr
 
 
 def wall_radius(phi: np.ndarray, spacing, where: np.ndarray, reach_mm: float) -> np.ndarray:
-    """The lumen's radius beside each voxel of ``where``: the depth of the deepest point along its inward normal.
+    """The lumen's radius beside each voxel of ``where``: how far down its inward normal the medial axis lies.
 
-    From a voxel on or near the wall the ray down ``-grad phi`` runs to the medial axis, where the depth
-    ``-phi`` peaks at the radius of the inscribed ball touching the wall there (the
-    ``MaximumInscribedSphereRadius`` of VMTK's centerlines).  Unlike a ball holding the voxel (the local
-    thickness), it reads a short throat's own radius, not its wider neighbours'.
+    Down the ray ``-grad phi`` from a voxel on or near the wall the depth ``-phi`` grows by the distance
+    travelled until the ray meets the medial axis, where it peaks: the voxel's depth plus the distance to
+    that peak is the radius of the inscribed ball touching the wall there (the ``MaximumInscribedSphereRadius``
+    of VMTK's centerlines).  The peak's place is read rather than its height, which interpolation between
+    voxels cuts off at a tube's axis.  Unlike a ball holding the voxel (the local thickness), the radius read
+    beside a short throat is the throat's own, not its wider neighbours'.
 
     Parameters
     ----------
@@ -176,7 +178,7 @@ def wall_radius(phi: np.ndarray, spacing, where: np.ndarray, reach_mm: float) ->
     where : ndarray of bool, same shape
         Voxels to measure.
     reach_mm : float
-        Length of the ray, mm: radii beyond it read as ``reach_mm`` less the voxel's distance outside.
+        Length of the ray, mm: deeper axes read as ``reach_mm`` less the voxel's distance outside.
 
     Returns
     -------
@@ -186,13 +188,21 @@ def wall_radius(phi: np.ndarray, spacing, where: np.ndarray, reach_mm: float) ->
     idx = np.nonzero(where)
     normal = np.stack([g[idx] for g in np.gradient(phi, *spacing)], axis=1)
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-6)
-    steps = np.arange(0.0, reach_mm + 1e-9, 0.5 * float(spacing.min()))
-    depth = np.zeros(len(idx[0]), np.float32)
+    step = (normal / spacing).astype(np.float32)
     start = np.stack(idx, axis=1).astype(np.float32)
-    for t in steps:  # a few dozen steps along the rays, each vectorised over the voxels
-        at = start - np.float32(t) * (normal / spacing).astype(np.float32)
-        depth = np.maximum(depth, -ndimage.map_coordinates(phi, at.T, order=1, mode="nearest"))
-    return depth
+    h = 0.5 * float(spacing.min())
+    along = np.arange(0.0, reach_mm + 1e-9, h)
+    depth = np.stack([-ndimage.map_coordinates(phi, (start - np.float32(t) * step).T, order=1, mode="nearest")
+                      for t in along])  # (steps, voxels), each step vectorised over the voxels
+    k = np.clip(np.argmax(depth, axis=0), 1, len(along) - 2) if len(along) > 2 else np.argmax(depth, axis=0)
+    peak = along[k]
+    if len(along) > 2:  # the parabola through the peak and its neighbours: a cut tip's middle
+        cols = np.arange(depth.shape[1])
+        before, at, after = depth[k - 1, cols], depth[k, cols], depth[k + 1, cols]
+        curve = before - 2.0 * at + after
+        shift = np.where(curve < -1e-6, 0.5 * (before - after) / np.where(curve < -1e-6, curve, -1.0), 0.0)
+        peak = peak + h * np.clip(shift, -0.5, 0.5)
+    return (-phi[idx] + peak).astype(np.float32)
 
 
 def reach_mm(blur_mm: float, spacing_kji, thickness_mm: float | None = None) -> float:
