@@ -702,7 +702,8 @@ def test_slab_filters_equal_scipy_bit_for_bit(monkeypatch):
     assert not np.array_equal(short, ndimage.gaussian_filter(a, 2.0))
 
 
-@pytest.mark.parametrize("bad", [{"deblur_iterations": -1}, {"deblur_gain": 0.0}, {"deblur_smooth_mm": -0.5}])
+@pytest.mark.parametrize("bad", [{"deblur_iterations": -1}, {"deblur_gain": 0.0}, {"deblur_smooth_mm": -0.5},
+                                 {"deblur_smooth_radius": -0.5}])
 def test_bad_refinement_parameters_are_refused(bad):
     from carotid.errors import CarotidError
     from carotid.segment import SegmentParameters

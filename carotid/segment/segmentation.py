@@ -157,8 +157,10 @@ class SegmentParameters:
     deblur_smooth_mm : float
         Extra Gaussian smoothing (mm) of the wall's speed in that refinement.
     deblur_smooth_radius : float
-        Where positive, that smoothing is at most this fraction of the lumen's local radius (and no less than
-        half ``deblur_smooth_mm``): a tight throat is corrected at its own scale (``deblur.refine``).
+        Where positive, that smoothing is at most this fraction of the lumen's radius beside the wall (and no
+        less than half ``deblur_smooth_mm``): a tight throat is corrected at its own scale (``deblur.refine``,
+        ``deblur.wall_radius``).  Off: at 0.5 the tight throats come nearer their width, and the mild and
+        calcified ones go further narrow by as many scans (``benchmarks/README.md``).
     deblur_slices : bool
         Blur that refinement's model along each axis by the measured blur plus the part of the voxel's
         boxcar beyond the finest axis's (``deblur.axis_blur``): thick slices blur a throat along the vessel
