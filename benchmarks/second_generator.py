@@ -145,9 +145,12 @@ def _line(a, b, step=0.2):
     return np.asarray(a, float) + np.linspace(0.0, 1.0, n)[:, None] * np.subtract(b, a)
 
 
-def make_second_phantom(seed: int) -> SecondPhantom:
-    """Build case ``seed`` (see the module docstring); 5-30 s and 1-3 GB on the fine grid."""
+def make_second_phantom(seed: int, calcium_hu: float | None = None) -> SecondPhantom:
+    """Build case ``seed`` (see the module docstring); 5-30 s and 1-3 GB on the fine grid.  ``calcium_hu``
+    replaces the calcium's drawn level (the same case and noise otherwise)."""
     p = draw(seed)
+    if calcium_hu is not None:
+        p["calcium_hu"] = float(calcium_hu)
     hx, _, hz = p["spacing_xyz"]
     fz = int(np.ceil(FINE * hz / hx))
     step = np.array([hz / fz, hx / FINE, hx / FINE])  # fine grid (z, y, x), mm
