@@ -19,9 +19,11 @@ compares, as the model's blur along k (mm):
 
 It also compares the in-plane blur ``edge_blur`` reads (``edge_blur_mm``)
 with the phantom's: its Gaussian and its partial-volume ramp (one mean voxel
-size wide) in quadrature, ``sqrt(sigma^2 + w^2 / 12)``; and the same for
-``edge_blur`` as it was before (``previous_edge_blur_mm``: edges located on
-the image smoothed by half a voxel, every tilt, linear interpolation).
+size wide) in quadrature, ``sqrt(sigma^2 + w^2 / 12)``; and the same for two
+earlier forms of ``edge_blur``: every profile centred on the isosurface and
+read as sampled (``isosurface_edge_blur_mm``, ``own_levels=False``), and
+besides that with edges located on the image smoothed by half a voxel, every
+tilt and linear interpolation (``previous_edge_blur_mm``).
 
 Usage (from the repository root)::
 
@@ -68,12 +70,15 @@ def run_case(seed: int, repeat: int) -> dict:
     measured = None if variance is None else float(np.sqrt(model.blur ** 2 + variance))
     in_plane = float(np.hypot(blur["in_plane"], spacing.mean() / np.sqrt(12.0)))
     previous = edge_blur(phantom.image.array, model.box, model.bright, model.half_level, spacing, locate_mm=None,
-                         max_tilt=1.0, order=1)
+                         max_tilt=1.0, order=1, own_levels=False)
+    isosurface = edge_blur(phantom.image.array, model.box, model.bright, model.half_level, spacing,
+                           own_levels=False)
     case = {"seed": seed, "modality": phantom.info["modality"], "spacing_kji_mm": spacing.tolist(),
-            "true_blur_mm": blur, "edge_blur_mm": model.blur, "previous_edge_blur_mm": previous,
-            "true_in_plane_mm": in_plane,
-            "in_plane_relative_error": {"edge_blur": None if model.blur is None else model.blur / in_plane - 1.0,
-                                        "previous": None if previous is None else previous / in_plane - 1.0},
+            "true_blur_mm": blur, "edge_blur_mm": model.blur, "isosurface_edge_blur_mm": isosurface,
+            "previous_edge_blur_mm": previous, "true_in_plane_mm": in_plane,
+            "in_plane_relative_error": {name: None if value is None else value / in_plane - 1.0
+                                        for name, value in (("edge_blur", model.blur), ("isosurface", isosurface),
+                                                            ("previous", previous))},
             "true_extra_variance_mm2": blur["z"] ** 2 - blur["in_plane"] ** 2, "measured_extra_variance_mm2": variance,
             "z_blur_mm": {"oracle": oracle, "slices": slices, "measured": measured},
             "relative_error": {"slices": slices / oracle - 1.0,
@@ -81,8 +86,8 @@ def run_case(seed: int, repeat: int) -> dict:
             "seconds": {"min": min(seconds), "median": float(np.median(seconds))}}
     errors = {k: "-" if v is None else f"{v:+.1%}" for k, v in case["in_plane_relative_error"].items()}
     log(f"case {seed:2d} ({case['modality']}): in plane {in_plane:.3f} mm, edge_blur {errors['edge_blur']}, "
-        f"previous {errors['previous']}; along k oracle {oracle:.3f} mm, slices {slices:.3f} "
-        f"({case['relative_error']['slices']:+.1%}), measured "
+        f"isosurface {errors['isosurface']}, previous {errors['previous']}; along k oracle {oracle:.3f} mm, "
+        f"slices {slices:.3f} ({case['relative_error']['slices']:+.1%}), measured "
         + ("-" if measured is None else f"{measured:.3f} ({case['relative_error']['measured']:+.1%})"))
     return case
 
@@ -110,8 +115,12 @@ def summarise(cases: list[dict]) -> dict:
         out[modality] = {"cases": len(mine)}
         for name in ("slices", "measured"):
             out[modality][name] = error_summary(mine, lambda c, name=name: c["relative_error"][name])
-    for name in ("edge_blur", "previous"):
-        out[f"in_plane_{name}"] = error_summary(cases, lambda c, name=name: c["in_plane_relative_error"][name])
+    for name in ("edge_blur", "isosurface", "previous"):
+        def error(case, name=name):
+            return case["in_plane_relative_error"][name]
+        out[f"in_plane_{name}"] = error_summary(cases, error)
+        for modality in sorted({c["modality"] for c in cases}):
+            out[modality][f"in_plane_{name}"] = error_summary([c for c in cases if c["modality"] == modality], error)
     times = np.array([c["seconds"]["min"] for c in cases])
     out["seconds"] = {"min": float(times.min()), "median": float(np.median(times)), "max": float(times.max())}
     return out
