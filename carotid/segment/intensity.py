@@ -356,7 +356,7 @@ def edge_blur(image: np.ndarray, box, bright: np.ndarray, level: float, spacing_
         ``level`` isosurface.
     plateau_mm, flat_fraction : float
         With ``own_levels``, the length (mm) of each plateau at a profile's ends, and its largest variation
-        (peak to peak) as a fraction of the profile's step.
+        (peak to peak) as a fraction of the step expected at ``level`` (``edge_plateaus``).
 
     Returns
     -------
@@ -420,12 +420,12 @@ def edge_plateaus(d: np.ndarray, profiles: np.ndarray, level: float, plateau_mm:
     above = profiles - 0.5 * (upper + lower)
     falls = (above[:-1] > 0) & (above[1:] <= 0)
     gap = np.where(falls, np.abs(0.5 * (d[:-1] + d[1:]))[:, None], np.inf)
-    first = np.argmin(gap, axis=0)
+    nearest = np.argmin(gap, axis=0)
     columns = np.arange(profiles.shape[1])
-    before, after = above[first, columns], above[first + 1, columns]
+    before, after = above[nearest, columns], above[nearest + 1, columns]
     with np.errstate(divide="ignore", invalid="ignore"):
-        shift = d[first] + (d[first + 1] - d[first]) * before / (before - after)
-    flat &= np.isfinite(gap[first, columns])
+        shift = d[nearest] + (d[nearest + 1] - d[nearest]) * before / (before - after)
+    flat &= np.isfinite(gap[nearest, columns])
     return upper, lower, np.where(flat, shift, 0.0), flat
 
 
