@@ -40,7 +40,6 @@ are stated there.
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
 
 from carotid.centerline.axes import arclength
 from carotid.centerline.model import Branch, Centerlines
@@ -147,11 +146,7 @@ def healthy_profile(branch: Branch,
     """Arc length, the points away from the branch ends, and the estimated original radius there.
 
     One end radius is skipped at each end (:func:`end_skips`); the original radius is
-    :func:`local_healthy_radius`, with a reach of four median radii, of the profile median-filtered over one
-    median radius of arc.  The widest point it bridges from is then a widening at least half a radius long: a
-    spike a few sections long (an oblique section near the image border reads its median radius 40 % high
-    over 0.6 mm on the second generator's seed 25) is not, and taken for the healthy vessel it graded the
-    sections beside it as a lesion deeper than the real one.
+    :func:`local_healthy_radius` with a reach of four median radii.
 
     Parameters
     ----------
@@ -173,10 +168,7 @@ def healthy_profile(branch: Branch,
     valid = np.flatnonzero((s >= head) & (s <= s[-1] - tail))
     if len(valid) < 5:
         return None
-    body = float(np.median(r[valid]))
-    window = 2 * int(round(0.5 * body / max(float(np.median(np.diff(s[valid]))), 1e-9))) + 1
-    robust = ndimage.median_filter(r[valid], size=min(window, 2 * (len(valid) // 2) - 1), mode="nearest")
-    return s, valid, local_healthy_radius(s[valid], robust, 4.0 * body)
+    return s, valid, local_healthy_radius(s[valid], r[valid], 4.0 * float(np.median(r[valid])))
 
 
 def stenosis(branch: Branch, from_end: bool = False) -> dict | None:
