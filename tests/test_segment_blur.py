@@ -147,7 +147,7 @@ def fading_tube(fade, seed=1, sigma=0.6):
 def test_edge_blur_reads_each_profile_between_its_own_levels():
     """A bolus fading by half along the tube: each profile centred on its own half level, the blur within 4 %
     (the wall's curvature adds 2 %).  Centred on the seed's half level, the dimmer profiles are shifted
-    outward and the median step is 6 % wider."""
+    outward and the median step reads 7 % wider than the blur."""
     image, truth, spacing = fading_tube(0.5)
     assert measured_blur(image, spacing) == pytest.approx(truth, rel=0.04)
     assert measured_blur(image, spacing, own_levels=False) > 1.05 * truth
@@ -155,7 +155,7 @@ def test_edge_blur_reads_each_profile_between_its_own_levels():
 
 def test_edge_blur_leaves_out_a_bright_structure_without_a_plateau():
     """A 300 HU lumen beside a vertebra (a 1.6 mm cortex at 1000 HU around 250 HU marrow, both above the
-    lumen's half level, 0.5 mm away): the bone's edges have no flat bright side and are left out, the blur
+    lumen's half level, 2.5 mm away): the bone's edges have no flat bright side and are left out, the blur
     within 4 %.  Taken with them it reads 27 % too sharp."""
     spacing = np.array([0.5, 0.45, 0.45])
     k, j, i = grid((48, 96, 96), spacing)
