@@ -46,7 +46,7 @@ from carotid.phantom import make_phantom
 from carotid.phantom.ct import LABELS, TISSUE_HU
 from carotid.phantom.family import sample_family
 from carotid.segment import SegmentParameters, segment
-from carotid.segment.calcium import hyperdense_edge
+from carotid.segment.calcium import decision_smoothing, hyperdense_edge
 from carotid.segment.preprocess import gaussian_filter
 from second_generator import draw, make_second_phantom
 
@@ -105,7 +105,7 @@ def run_case(job: tuple[str, int]) -> dict | None:
     band = ((ndimage.distance_transform_edt(~calcium, sampling=spacing) < NEAR_CALCIUM_MM)
             & (phantom.sdf.array < NEAR_WALL_MM))
     contrast = lumen - background
-    smooth = gaussian_filter(np.asarray(volume.array, np.float32), max(0.5, 0.5 * float(spacing.max())) / spacing)
+    smooth = gaussian_filter(np.asarray(volume.array, np.float32), decision_smoothing(spacing) / spacing)
     case = {"source": source, "seed": seed, "calcium_mm3": float(np.count_nonzero(calcium) * np.prod(spacing)),
             "calcium_peak_over_lumen": float((smooth[calcium].max() - lumen) / contrast),
             "top_over_lumen": float((top - lumen) / contrast), "configs": {}}

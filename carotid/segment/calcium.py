@@ -54,10 +54,12 @@ from carotid.segment.preprocess import gaussian_filter
 TISSUE, LUMEN, STRUCTURE = 1, 2, 3
 # Tissue level: below the background plus this fraction of the lumen's contrast (lightly smoothed image).
 TISSUE_FRACTION = 0.25
+# Gaussian smoothing (mm) of the image on which hyperdense structures are found, at the finest voxels.
+DECISION_SMOOTH_MM = 0.5
 
 
 def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: float, spacing_kji,
-                    blur_mm: float | None, reach_mm: float = 3.0, sigma_mm: float = 0.5,
+                    blur_mm: float | None, reach_mm: float = 3.0, sigma_mm: float = DECISION_SMOOTH_MM,
                     balls: bool = False, depth_cap: bool = False,
                     tissue_offset: bool = False) -> tuple[np.ndarray, np.ndarray, dict]:
     """The image with each hyperdense structure (calcium, bone) and its blur replaced by the background.
@@ -96,7 +98,7 @@ def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: flo
         subtracted (image units).
     """
     spacing_kji = np.asarray(spacing_kji, float)
-    sigma_mm = max(sigma_mm, 0.5 * float(spacing_kji.max()))
+    sigma_mm = decision_smoothing(spacing_kji, sigma_mm)
     image = np.asarray(image, np.float32)
     smooth = gaussian_filter(image, sigma_mm / spacing_kji)
     hot = smooth > np.float32(top)
@@ -158,6 +160,13 @@ def hyperdense_edge(image: np.ndarray, top: float, lumen: float, background: flo
     out[wide] = local
     volume = float(np.count_nonzero(extent) * np.prod(spacing_kji))
     return out, extent, {"structures": int(n), "volume_mm3": volume, "blur_amplitude_max": amplitude_max}
+
+
+def decision_smoothing(spacing_kji, sigma_mm: float = DECISION_SMOOTH_MM) -> float:
+    """Gaussian smoothing (mm) of the image ``hyperdense_edge`` takes its decisions on: ``sigma_mm``, and at
+    least half the coarsest voxel (``spacing_kji``, mm), so that single noisy voxels of a coarse scan are not
+    taken for calcium."""
+    return max(float(sigma_mm), 0.5 * float(np.max(spacing_kji)))
 
 
 def within(box: tuple[slice, ...], outer: tuple[slice, ...]) -> tuple[slice, ...]:
