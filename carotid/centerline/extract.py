@@ -185,7 +185,9 @@ def compute_centerlines(levelset: Volume, mask: Volume | None = None, *, prune: 
     for name, pts in axes.items():
         radii = radius_at(pts)
         median, narrow = section_profile(section_radii(levelset, pts, radii))
-        branches.append(Branch(name, pts, radii, section_areas(levelset, pts, radii), median, narrow))
+        areas = section_areas(levelset, pts, radii)
+        areas[np.isnan(median)] = np.nan  # a section the image border cuts is not measured
+        branches.append(Branch(name, pts, radii, areas, median, narrow))
     labelled.info["bifurcation_method"] = bif_method
     info = {"lumen": report, "labelling": labelled.info,
             "parameters": {"prune": prune, "smoothing_mm": smoothing, "step_mm": step, "merge": merge}}

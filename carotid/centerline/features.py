@@ -128,25 +128,30 @@ def end_skips(radii: np.ndarray) -> tuple[float, float]:
     ICA): skipping only that would leave the cut's narrowed sections to be graded as the lesion.  The median radius covers an oblique cut
     up to 45 degrees, whose sections within ``r tan(angle)`` of the border are incomplete.
 
+    Sections not measured (NaN: cut by the image border) are left out: the ends are the first and the last
+    measured ones.
+
     Parameters
     ----------
     radii : ndarray, shape (n,)
-        Radius profile along the branch, mm.
+        Radius profile along the branch, mm; at least one finite.
 
     Returns
     -------
     (head, tail) : float
     """
-    body = float(np.median(radii))
-    return max(float(radii[0]), body), max(float(radii[-1]), body)
+    measured = np.asarray(radii, float)[np.isfinite(radii)]
+    body = float(np.median(measured))
+    return max(float(measured[0]), body), max(float(measured[-1]), body)
 
 
 def healthy_profile(branch: Branch,
                     radii: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Arc length, the points away from the branch ends, and the estimated original radius there.
 
-    One end radius is skipped at each end (:func:`end_skips`); the original radius is
-    :func:`local_healthy_radius` with a reach of four median radii.
+    One end radius is skipped at each end (:func:`end_skips`), and the sections not measured (NaN radius:
+    cut by the image border) are left out; the original radius is :func:`local_healthy_radius` with a reach
+    of four median radii.
 
     Parameters
     ----------
@@ -158,14 +163,16 @@ def healthy_profile(branch: Branch,
     Returns
     -------
     (s, valid, healthy) or None
-        ``s`` (n,) arc length from the branch's first point, mm; ``valid`` (m,) indices of the points away
-        from the ends; ``healthy`` (m,) the original radius at those points, mm.  None when fewer than five
-        points are away from the ends.
+        ``s`` (n,) arc length from the branch's first point, mm; ``valid`` (m,) indices of the measured
+        points away from the ends; ``healthy`` (m,) the original radius at those points, mm.  None when fewer
+        than five such points remain.
     """
     r = branch.radii if radii is None else np.asarray(radii, float)
     s = arclength(branch.points)
+    if not np.any(np.isfinite(r)):
+        return None
     head, tail = end_skips(r)
-    valid = np.flatnonzero((s >= head) & (s <= s[-1] - tail))
+    valid = np.flatnonzero((s >= head) & (s <= s[-1] - tail) & np.isfinite(r))
     if len(valid) < 5:
         return None
     return s, valid, local_healthy_radius(s[valid], r[valid], 4.0 * float(np.median(r[valid])))
@@ -308,6 +315,9 @@ def bifurcation_geometry(cl: Centerlines) -> dict | None:
     * Tortuosity of each branch: arc length over chord minus one over the whole branch
       (:func:`branch_features`).
 
+    Sections cut by the image border (NaN ``r`` and ``A``, ``axes.section_radii``) are left out of every
+    median and maximum.
+
     Parameters
     ----------
     cl : Centerlines
@@ -336,9 +346,9 @@ def bifurcation_geometry(cl: Centerlines) -> dict | None:
 
     radii = {b.name: grading_profiles(b)[1] for b in (cca, ica, eca)}  # median section radius r(s)
     try:
-        rho = float(np.median(radii["CCA"]))
+        rho = float(np.nanmedian(radii["CCA"]))
         first = _window(s_cca, CCA_WINDOW[0] * rho, CCA_WINDOW[1] * rho)
-        radius = float(np.median(radii["CCA"][first]))
+        radius = float(np.nanmedian(radii["CCA"][first]))
         in_cca = _window(s_cca, CCA_WINDOW[0] * radius, CCA_WINDOW[1] * radius)
         directions, reference = {}, {}
         for b, s in ((ica, s_ica), (eca, s_eca)):
@@ -346,13 +356,13 @@ def bifurcation_geometry(cl: Centerlines) -> dict | None:
             directions[b.name] = _direction(b.points[window], b.points[0])
             reference[b.name] = _window(s, DAUGHTER_START * radius, s[-1] - end_skips(radii[b.name])[1])
         in_bulb = _window(s_ica, BULB_WINDOW[0] * radius, BULB_WINDOW[1] * radius)
+        widest = int(in_bulb[np.nanargmax(radii["ICA"][in_bulb])])
     except ValueError as exc:
         return {"reason": str(exc)}
     directions["CCA"] = _direction(cca.points[in_cca], cca.points[-1])
-    a_cca = float(np.median(area(cca)[in_cca]))
-    a_ica, a_eca = (float(np.median(area(b)[reference[b.name]])) for b in (ica, eca))
-    r_ica = float(np.median(radii["ICA"][reference["ICA"]]))
-    widest = int(in_bulb[np.argmax(radii["ICA"][in_bulb])])
+    a_cca = float(np.nanmedian(area(cca)[in_cca]))
+    a_ica, a_eca = (float(np.nanmedian(area(b)[reference[b.name]])) for b in (ica, eca))
+    r_ica = float(np.nanmedian(radii["ICA"][reference["ICA"]]))
     bulb_end = 0.0
     threshold = (1.0 + BULB_EXCESS) * r_ica
     profile = healthy_profile(ica, radii["ICA"])
@@ -368,7 +378,7 @@ def bifurcation_geometry(cl: Centerlines) -> dict | None:
     return {
         "cca_diameter_mm": 2.0 * radius, "cca_area_mm2": a_cca,
         "ica_diameter_mm": 2.0 * r_ica, "ica_area_mm2": a_ica,
-        "eca_diameter_mm": 2.0 * float(np.median(radii["ECA"][reference["ECA"]])), "eca_area_mm2": a_eca,
+        "eca_diameter_mm": 2.0 * float(np.nanmedian(radii["ECA"][reference["ECA"]])), "eca_area_mm2": a_eca,
         "ica_cca_area_ratio": a_ica / a_cca, "bifurcation_area_ratio": (a_ica + a_eca) / a_cca,
         "bifurcation_angle_deg": _angle_deg(directions["ICA"], directions["ECA"]),
         "ica_angle_deg": _angle_deg(directions["ICA"], -directions["CCA"]),

@@ -24,10 +24,12 @@ class Branch:
     radii : ndarray, shape (n,)
         Radius of the maximal inscribed sphere at each point, mm.
     areas : ndarray, shape (n,), optional
-        Area of the lumen section normal to the axis at each point, mm^2 (``axes.section_areas``).
+        Area of the lumen section normal to the axis at each point, mm^2 (``axes.section_areas``); NaN where
+        the image border cuts the section.
     median_radii, narrow_radii : ndarray, shape (n,), optional
         Median radius and half the narrowest diameter of the section normal to the axis at each point, mm
-        (``axes.section_profile``): the stenosis grading's robust measures of a rough wall.
+        (``axes.section_profile``): the stenosis grading's robust measures of a rough wall; NaN where the
+        image border cuts the section.
     """
 
     name: str
