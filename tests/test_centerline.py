@@ -419,7 +419,7 @@ def test_an_axis_continued_to_the_border_does_not_step_aside():
     """An axis curving on a 40 mm radius out through the last slice at 47 degrees: the straight continuation to
     the border starts at the last point kept, so the axis turns by at most 5 degrees between its 0.15 mm
     steps (its own curvature turns it by 0.2).  Started at that point's projection on the fitted line
-    (mutation), it steps 0.09 mm aside within one step and turns by 25 degrees, tilting the sections there."""
+    (mutation), it steps 0.08 mm aside within one step and turns by 25 degrees, tilting the sections there."""
     vol = Volume(np.zeros((60, 80, 80), np.float32), (0.5, 0.5, 0.5), (-20.0, -20.0, 0.0))
     theta = np.linspace(0.0, np.arcsin(29.5 / 40.0), 4000)
     arc = np.stack([40.0 * (1 - np.cos(theta)) - 10.0, 0 * theta, 40.0 * np.sin(theta)], axis=1)
