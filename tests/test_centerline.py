@@ -11,8 +11,7 @@ from scipy.spatial import cKDTree
 
 from carotid.centerline import (Branch, Centerlines, compute_centerlines, read_centerlines, stenosis,
                                 write_centerlines)
-from carotid.centerline.axes import (arclength, section_areas, section_profile, section_radii, smooth_axis,
-                                    straighten_border_end)
+from carotid.centerline.axes import arclength, section_areas, section_profile, section_radii, smooth_axis
 from carotid.centerline.command import register
 from carotid.errors import CarotidError
 from carotid.io import Volume
@@ -413,21 +412,6 @@ def test_rays_whose_wall_lies_beyond_the_image_are_not_measured():
     median, narrow = section_profile(rays)
     assert np.all(np.isnan(median[cut])) and np.all(np.isnan(narrow[cut]))
     assert np.abs(median[~cut] - 2.0).max() < 0.03 and np.abs(narrow[~cut] - 2.0).max() < 0.03
-
-
-def test_an_axis_continued_to_the_border_does_not_step_aside():
-    """An axis curving on a 40 mm radius out through the last slice at 47 degrees: the straight continuation to
-    the border starts at the last point kept, so the axis turns by at most 5 degrees between its 0.15 mm
-    steps (its own curvature turns it by 0.2).  Started at that point's projection on the fitted line
-    (mutation), it steps 0.08 mm aside within one step and turns by 25 degrees, tilting the sections there."""
-    vol = Volume(np.zeros((60, 80, 80), np.float32), (0.5, 0.5, 0.5), (-20.0, -20.0, 0.0))
-    theta = np.linspace(0.0, np.arcsin(29.5 / 40.0), 4000)
-    arc = np.stack([40.0 * (1 - np.cos(theta)) - 10.0, 0 * theta, 40.0 * np.sin(theta)], axis=1)
-    out = straighten_border_end(vol, np.concatenate([arc[::20], arc[-1:]]), 2.5, at_start=False)
-    assert vol.world_to_index(out[-1])[0] == pytest.approx(59.0, abs=1e-6)  # continued to the border
-    step = np.diff(out, axis=0)
-    step /= np.linalg.norm(step, axis=1, keepdims=True)
-    assert np.degrees(np.arccos(np.clip(np.sum(step[1:] * step[:-1], axis=1), -1, 1))).max() < 5.0
 
 
 def test_sections_not_measured_are_left_out_of_the_grading():
