@@ -266,9 +266,7 @@ def section_radii(levelset: Volume, points: np.ndarray, radii: np.ndarray, n_ray
         crossing = (b >= 0) & (a < 0)
         fraction = np.where(crossing, -a / np.where(crossing, b - a, 1.0), 1.0)
         out[sl] = np.minimum(along[k - 1] + fraction * step, length[sl, None])
-    wall = levelset.world_to_index((points[:, None] + out[..., None] * ray).reshape(-1, 3))
-    beyond = np.any((wall < -1e-6) | (wall > np.asarray(levelset.array.shape) - 1 + 1e-6), axis=1)
-    out[beyond.reshape(out.shape)] = np.nan
+    out[~levelset.contains(points[:, None] + out[..., None] * ray, margin=1e-6)] = np.nan
     return out
 
 

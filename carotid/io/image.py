@@ -107,11 +107,11 @@ class Volume:
         corners = np.array(np.meshgrid(*[[0, n - 1] for n in self.array.shape], indexing="ij")).reshape(3, -1).T
         return bool(np.abs(self.index_to_world(corners) - other.index_to_world(corners)).max() <= tol_mm)
 
-    def contains(self, xyz: np.ndarray) -> np.ndarray:
-        """Whether world points (mm), shape (..., 3), lie inside the voxel grid."""
+    def contains(self, xyz: np.ndarray, margin: float = 0.5) -> np.ndarray:
+        """Whether world points (mm), shape (..., 3), lie within ``margin`` voxels of the box of the voxel
+        centres (0.5, the default: inside the voxel grid; about 0: where the image holds data to interpolate)."""
         kji = self.world_to_index(xyz)
-        upper = np.asarray(self.array.shape) - 0.5
-        return np.all((kji >= -0.5) & (kji <= upper), axis=-1)
+        return np.all((kji >= -margin) & (kji <= np.asarray(self.array.shape) - 1 + margin), axis=-1)
 
 
 def to_sitk(volume: Volume) -> sitk.Image:
