@@ -26,6 +26,16 @@ needs_fluid_stl = pytest.mark.skipif(not FLUID_STL.exists(), reason=f"shared dat
 ACCURACY_CASES = [(0.5, 30.0, 2), (0.6, 10.0, 4), (0.7, 20.0, 1), (0.75, 25.0, 7), (0.8, 30.0, 11)]
 
 
+def pytest_collection_modifyitems(config, items):
+    """Group the tests for pytest-xdist's ``--dist loadgroup`` (the README's test command runs two workers):
+    each file on one worker, so that its module fixtures are computed once, and every file that uses the
+    session's ``demo_run`` on one worker, first, so that the demo runs once and its long group starts early."""
+    demo_files = {item.path for item in items if "demo_run" in getattr(item, "fixturenames", ())}
+    for item in items:
+        item.add_marker(pytest.mark.xdist_group("demo" if item.path in demo_files else item.path.name))
+    items.sort(key=lambda item: item.path not in demo_files)
+
+
 @functools.lru_cache(maxsize=None)
 def phantom(stenosis: float = 0.7, noise: float = 20.0, seed: int = 1):
     """A cached phantom (do not modify its arrays)."""
