@@ -30,10 +30,12 @@ phantom's truth:
   to convergence (100 steps of three times the step length);
 * ``from_truth``: the defaults started from the true wall instead of the
   evolution's front (what the start alone decides);
-* ``linear_level``: the lumen level followed by a local linear fit
-  (``deblur_linear_level``) instead of a local mean, which lags a fading
-  bolus and reads the throat's lumen too bright;
-* ``from_truth_linear_level``: both, the start and the level;
+* ``mean_level``: the lumen level followed by a local mean instead of the
+  default local linear fit (``deblur_linear_level``); the mean lags a
+  fading bolus and reads the throat's lumen too bright;
+* ``uniform_smoothing``: the wall's speed smoothed by ``deblur_smooth_mm``
+  everywhere instead of at most half the lumen's radius
+  (``deblur_smooth_radius``);
 
 and the same on the case with its noise scaled by 0.02
 (``noise_free_defaults``, ``noise_free_true_model``,
@@ -195,8 +197,8 @@ def run_case(seed: int) -> dict:
             runs["true_blur"] = lambda: rerun(args, seeds_kji, thickness, blur=blur)
             runs["true_levels"] = lambda: rerun(args, seeds_kji, levels=levels)
             runs["from_truth"] = lambda: rerun(args, seeds_kji, start=sdf)
-            runs["linear_level"] = lambda: rerun(args, seeds_kji, deblur_linear_level=True)
-            runs["from_truth_linear_level"] = lambda: rerun(args, seeds_kji, start=sdf, deblur_linear_level=True)
+            runs["mean_level"] = lambda: rerun(args, seeds_kji, deblur_linear_level=False)
+            runs["uniform_smoothing"] = lambda: rerun(args, seeds_kji, deblur_smooth_radius=0.0)
         else:
             runs["converged"] = lambda: rerun(args, seeds_kji, **CONVERGED)
             runs["true_z_blur_converged"] = lambda: rerun(args, seeds_kji, thickness, **CONVERGED)

@@ -14,8 +14,8 @@ from carotid.io import Volume
 from carotid.segment import SegmentParameters, calcium, deblur, segment, segmentation
 from carotid.segment.calcium import hyperdense_edge
 from carotid.segment.deblur import normal_background, refine
-from carotid.segment.intensity import (edge_blur, local_level, local_linear_level, through_plane_variance,
-                                      wide_gaussian)
+from carotid.segment.intensity import (IntensityModel, edge_blur, local_level, local_linear_level,
+                                      through_plane_variance, wide_gaussian)
 from carotid.segment.levelset import signed_distance
 
 B, A, P = 40.0, 300.0, 1000.0  # tissue, lumen and calcium levels (HU)
@@ -541,19 +541,46 @@ def test_the_wall_radius_is_the_throats_own_not_its_neighbours():
     assert np.median(deblur.wall_radius(sdf, spacing, tube, 1.2)) == pytest.approx(1.2, abs=0.12)
 
 
+def half_level_front(image, spacing):
+    """The front an edge-based evolution leaves: the signed distance (mm) of the lightly smoothed image's half
+    level between ``A`` and ``B``."""
+    half = ndimage.gaussian_filter(image, 0.5) > 0.5 * (A + B)
+    return signed_distance((ndimage.distance_transform_edt(~half, sampling=spacing)
+                            - ndimage.distance_transform_edt(half, sampling=spacing)).astype(np.float32), spacing, 6.0)
+
+
 def test_a_short_throat_is_refined_at_its_own_scale():
     """A 1.1 mm throat whose narrowing spans about a millimetre each way, blurred by 0.6 mm, from the front an
     edge-based evolution leaves (the blurred image's half level).  Smoothed over a millimetre, the wall's speed
     spreads the wider lumen's pull over the throat and the refinement widens it by 0.03 mm; smoothed over
     at most 0.4 of the radius beside the wall, the throat keeps its width."""
     image, spacing, sdf = throat_image(slices=1, h=0.3, sigma=0.6, length=1.0, nc=41)
-    half = ndimage.gaussian_filter(image, 0.5) > 0.5 * (A + B)
-    front = signed_distance((ndimage.distance_transform_edt(~half, sampling=spacing)
-                             - ndimage.distance_transform_edt(half, sampling=spacing)).astype(np.float32), spacing, 6.0)
+    front = half_level_front(image, spacing)
     assert radius_of(refine(image, front, spacing, A, B, 0.6, smooth_radius=0.4), spacing) == pytest.approx(
         1.1, abs=0.015)
     # Mutation: the same smoothing everywhere.
     assert radius_of(refine(image, front, spacing, A, B, 0.6), spacing) > 1.1 + 0.025
+
+
+def test_the_default_refinement_follows_the_level_and_corrects_a_throat_at_its_scale():
+    """``segment``'s refinement with the default parameters (``segmentation.deblur``) keeps both of the last
+    two tests' walls: the 1.5 mm branch beyond a fading bulb, whose level a local mean reads too bright, and
+    the short 1.1 mm throat, which a smoothing of a millimetre everywhere widens."""
+    model = IntensityModel(lumen=A, spread=10.0, background=B, source="seeds", blur=0.6)
+
+    def refined(image, phi, spacing, **overrides):
+        return radius_of(segmentation.deblur(image, phi, spacing, model, SegmentParameters(**overrides), None,
+                                             None)[0], spacing)
+
+    image, spacing, sdf, _, _ = bulb_and_branch(1.5)
+    assert refined(image, sdf, spacing) == pytest.approx(1.5, abs=0.03)
+    # Mutation: the local mean.
+    assert refined(image, sdf, spacing, deblur_linear_level=False) < 1.5 - 0.06
+    image, spacing, _ = throat_image(slices=1, h=0.3, sigma=0.6, length=1.0, nc=41)
+    front = half_level_front(image, spacing)
+    assert refined(image, front, spacing) == pytest.approx(1.1, abs=0.015)
+    # Mutation: the same smoothing everywhere.
+    assert refined(image, front, spacing, deblur_smooth_radius=0.0) > 1.1 + 0.025
 
 
 def test_the_model_does_not_count_the_voxel_twice():

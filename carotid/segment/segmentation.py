@@ -159,8 +159,7 @@ class SegmentParameters:
     deblur_smooth_radius : float
         Where positive, that smoothing is at most this fraction of the lumen's radius beside the wall (and no
         less than half ``deblur_smooth_mm``): a tight throat is corrected at its own scale (``deblur.refine``,
-        ``deblur.wall_radius``).  Off: at 0.5 the tight throats come nearer their width, and the mild and
-        calcified ones go further narrow by as many scans (``benchmarks/README.md``).
+        ``deblur.wall_radius``).  0 smooths by ``deblur_smooth_mm`` everywhere.
     deblur_slices : bool
         Blur that refinement's model along each axis by the measured blur plus the part of the voxel's
         boxcar beyond the finest axis's (``deblur.axis_blur``): thick slices blur a throat along the vessel
@@ -168,8 +167,9 @@ class SegmentParameters:
     deblur_linear_level : bool
         Follow that refinement's lumen level along the vessel by a local linear fit
         (``intensity.local_linear_level``), which does not lean towards a stenosis's wider bulb, instead of a
-        local mean.  Off: under the refinement's early stop the leaning level holds a tight throat's wall in,
-        and the level without the lean leaves it wider (``benchmarks/README.md``).
+        local mean.  On with ``deblur_smooth_radius``: the leaning level pulls a mild throat's wall in, and
+        under a millimetre's smoothing everywhere its lean is what holds a tight throat in
+        (``benchmarks/README.md``).
     deblur_neighbours : bool
         Leave enhancing structures beyond the wall's blur (a jugular vein or an artery the front never
         reached: ``deblur.bright_neighbours``) out of that refinement's tissue level, with their own blur,
@@ -266,9 +266,9 @@ class SegmentParameters:
     deblur_iterations: int = 20
     deblur_gain: float = 2.0
     deblur_smooth_mm: float = 1.0
-    deblur_smooth_radius: float = 0.0
+    deblur_smooth_radius: float = 0.5
     deblur_slices: bool = True
-    deblur_linear_level: bool = False
+    deblur_linear_level: bool = True
     deblur_neighbours: bool = False
     slice_thickness_mm: float = 0.0
     measure_slice_blur: bool = True
