@@ -563,9 +563,9 @@ def test_a_short_throat_is_refined_at_its_own_scale():
 
 
 def test_the_default_refinement_follows_the_level_and_corrects_a_throat_at_its_scale():
-    """``segment``'s refinement with the default parameters (``segmentation.deblur``) keeps both of the last
-    two tests' walls: the 1.5 mm branch beyond a fading bulb, whose level a local mean reads too bright, and
-    the short 1.1 mm throat, which a smoothing of a millimetre everywhere widens."""
+    """``segment``'s refinement with the default parameters (``segmentation.deblur``) keeps both walls that
+    ``refine``'s options keep above: the 1.5 mm branch beyond a fading bulb, whose level a local mean reads too
+    bright, and the short 1.1 mm throat, which a smoothing of a millimetre everywhere widens."""
     model = IntensityModel(lumen=A, spread=10.0, background=B, source="seeds", blur=0.6)
 
     def refined(image, phi, spacing, **overrides):
