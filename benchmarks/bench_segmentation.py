@@ -79,7 +79,9 @@ every case's noise by F (0.02 leaves the model's own bias), and ``--recorded-thi
 defaults on scans that record the slice thickness of their through-plane blur (``recorded_thickness``).
 
 ``--cta-only`` runs the thoracic CTA alone (carotid and GAC) into ``results/segmentation_cta.json``, and
-``--large-only`` the 256^3 speed case into ``results/segmentation_large.json``.
+``--large-only`` the 256^3 speed case into ``results/segmentation_large.json``; ``--versus REV`` times
+revision REV's ``segment`` on the same image between carotid's runs (the machine's speed varies between
+days, the old code's time on the day it was committed says by how much).
 
 ``--quick``: 3 family cases, a 128^3 large case timed once, no CTA, two
 analytic tubes (about 4 minutes on 2 cores; the full run about 50).
@@ -88,7 +90,12 @@ analytic tubes (about 4 minutes on 2 cores; the full run about 50).
 from __future__ import annotations
 
 import argparse
+import contextlib
+import json
 import os
+import subprocess
+import sys
+import tempfile
 import time
 import traceback
 from dataclasses import asdict, replace
@@ -99,12 +106,12 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 import _vmtk
-from _common import GacSetting, GacStop, git_state, run_gac, timed, write_results
+from _common import REPO, GacSetting, GacStop, git_state, run_gac, timed, write_results
 from carotid.centerline import Branch, compute_centerlines, stenosis
 from carotid.centerline.axes import section_profile, section_radii
 from carotid.centerline.plaque import annotate
 from carotid.errors import CarotidError
-from carotid.io import Volume, read_image
+from carotid.io import Volume, read_image, write_image
 from carotid.phantom import LABELS, make_phantom
 from carotid.phantom.family import sample_family
 from carotid.segment import SegmentParameters, segment
@@ -567,8 +574,58 @@ def run_cta(with_gac: bool) -> dict:
 
 # ------------------------------------------------------------------------------------------ large case
 
-def run_large(quick: bool) -> dict:
-    """A 256^3 family phantom (128^3 quick): carotid timed ``LARGE_REPEATS`` times, GAC once; both scored."""
+REVISION_TIMING = """\
+import json, sys, time
+import carotid
+from carotid.io import read_image
+from carotid.phantom import make_phantom
+from carotid.segment import SegmentParameters, segment
+warm = make_phantom(0.7, 20.0, 0, extent=(30.0, 30.0, 45.0))
+segment(warm.image, seeds_xyz=[warm.info["seeds_mm"]["CCA"]])
+volume = read_image(sys.argv[1])
+start = time.perf_counter()
+segment(volume, seeds_xyz=json.loads(sys.argv[2]), params=SegmentParameters())
+print(json.dumps({"seconds": time.perf_counter() - start, "carotid": carotid.__file__}))
+"""
+"""What a revision's ``segment`` runs in :func:`revision_seconds`: the warm-up of ``main`` (numba
+compilation), then the timed call with the defaults."""
+
+
+@contextlib.contextmanager
+def revision_tree(revision: str):
+    """A detached git worktree of ``revision`` in a temporary folder (removed on exit), and its commit."""
+    with tempfile.TemporaryDirectory() as folder:
+        tree = Path(folder) / "tree"
+        subprocess.run(["git", "worktree", "add", "--detach", "-q", str(tree), revision], cwd=REPO, check=True,
+                       capture_output=True)
+        try:
+            commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=tree, capture_output=True, text=True,
+                                    check=True).stdout.strip()
+            yield tree, commit
+        finally:
+            subprocess.run(["git", "worktree", "remove", "--force", str(tree)], cwd=REPO, capture_output=True)
+
+
+def revision_seconds(tree: Path, image_path: Path, seeds) -> float:
+    """Seconds of the ``segment`` of the carotid in ``tree`` (defaults, ``seeds`` in world mm) on the image
+    at ``image_path``, in a subprocess after its own warm-up (``REVISION_TIMING``)."""
+    done = subprocess.run([sys.executable, "-c", REVISION_TIMING, str(image_path),
+                           json.dumps(np.asarray(seeds, float).tolist())],
+                          cwd=tree, env={**os.environ, "PYTHONPATH": str(tree)}, capture_output=True, text=True)
+    if done.returncode:
+        raise RuntimeError(f"the revision's segment failed: {done.stderr.strip().splitlines()[-1:]}")
+    timing = json.loads(done.stdout.strip().splitlines()[-1])
+    if not Path(timing["carotid"]).resolve().is_relative_to(tree.resolve()):
+        raise RuntimeError(f"the revision's subprocess imported {timing['carotid']}, not the worktree's carotid")
+    return float(timing["seconds"])
+
+
+def run_large(quick: bool, versus: str | None = None) -> dict:
+    """A 256^3 family phantom (128^3 quick): carotid timed ``LARGE_REPEATS`` times, GAC once; both scored.
+
+    With ``versus`` (a git revision), that revision's ``segment`` is timed on the same image after each of
+    carotid's runs, alternately: the same code timed on two days tells a slower machine from slower code.
+    """
     kwargs = {**sample_family(LARGE_SEED), **(QUICK_LARGE if quick else LARGE)}
     phantom, gen_seconds = timed(make_phantom, **kwargs)
     volume = phantom.image
@@ -581,21 +638,34 @@ def run_large(quick: bool) -> dict:
     except Exception as error:  # noqa: BLE001
         tg = {"nascet": None, "error": str(error)}
     out["truth_graded"] = tg
-    times = []
-    for repeat in range(1 if quick else LARGE_REPEATS):
-        record, run = guarded("carotid", "large", run_carotid, volume, seeds)
-        if run is None:
-            out["carotid"] = record
-            break
-        times.append(run["seconds"])
-        log(f"large case carotid run {repeat + 1}: {run['seconds']:.1f} s (stages {run['stage_seconds']})")
-        if repeat == 0:
-            out["carotid"] = score(run, phantom, tg)
-        del run
+    times, theirs = [], []
+    with contextlib.ExitStack() as stack:
+        if versus:
+            tree, commit = stack.enter_context(revision_tree(versus))
+            image_path = write_image(volume, Path(stack.enter_context(tempfile.TemporaryDirectory())) / "large.nii",
+                                     compress=False)
+            out["versus"] = {"revision": versus, "commit": commit}
+        for repeat in range(1 if quick else LARGE_REPEATS):
+            record, run = guarded("carotid", "large", run_carotid, volume, seeds)
+            if run is None:
+                out["carotid"] = record
+                break
+            times.append(run["seconds"])
+            log(f"large case carotid run {repeat + 1}: {run['seconds']:.1f} s (stages {run['stage_seconds']})")
+            if repeat == 0:
+                out["carotid"] = score(run, phantom, tg)
+            del run
+            if versus:
+                theirs.append(revision_seconds(tree, image_path, seeds))
+                log(f"large case {versus} ({commit[:12]}) run {repeat + 1}: {theirs[-1]:.1f} s")
     out["carotid_seconds_runs"] = times
     if times:
         out["carotid_seconds_min"], out["carotid_seconds_median"] = float(np.min(times)), float(np.median(times))
         log(f"large case carotid: {brief(out['carotid'])}; min {min(times):.1f} s, median {np.median(times):.1f} s")
+    if theirs:
+        out["versus"].update(seconds_runs=theirs, seconds_min=float(np.min(theirs)),
+                             seconds_median=float(np.median(theirs)))
+        log(f"large case {versus}: min {min(theirs):.1f} s, median {np.median(theirs):.1f} s")
     record, run = guarded("gac", "large", run_gac_from_seeds, volume, seeds)
     out["gac"] = score(run, phantom, tg) if run is not None else record
     log(f"large case gac: {brief(out['gac'])}")
@@ -821,6 +891,10 @@ def main() -> None:
     parser.add_argument("--large-only", action="store_true",
                         help="only the 256^3 speed case, against GAC (results/segmentation_large.json): the speed "
                              "target measured on an idle machine without the hour of the whole run")
+    parser.add_argument("--versus", metavar="REV", default=None,
+                        help="with --large-only: also time the segment of git revision REV on the same image, "
+                             "alternately with carotid's runs (a worktree in a temporary folder): a commit timed "
+                             "on another day tells a slower machine from slower code")
     parser.add_argument("--cta-only", action="store_true",
                         help="only the thoracic CTA, carotid and GAC (results/segmentation_cta.json): its figures "
                              "on a commit that changes nothing else the whole run measures")
@@ -837,6 +911,11 @@ def main() -> None:
     parser.add_argument("--name", default="segmentation_variants",
                         help="results file of the --variant mode (default segmentation_variants)")
     args = parser.parse_args()
+    if args.versus and not args.large_only:
+        parser.error("--versus times the 256^3 case: give it with --large-only")
+    if args.versus and subprocess.run(["git", "rev-parse", "--verify", "-q", f"{args.versus}^{{commit}}"], cwd=REPO,
+                                      capture_output=True).returncode:
+        parser.error(f"--versus {args.versus}: no such git revision in {REPO}")
     variants = {",".join(f"{k}={v}" for k, v in overrides.items()): overrides for overrides in args.variant}
     n_cases = args.cases if args.cases is not None else (3 if args.quick else 30)
     seeds = range(args.first_seed, args.first_seed + n_cases)
@@ -866,7 +945,7 @@ def main() -> None:
         return
     if args.large_only:
         load = os.getloadavg()
-        large = run_large(args.quick)
+        large = run_large(args.quick, args.versus)
         write_results("segmentation_large", {
             "git": git, "load_average_at_start": load, "large_case": large,
             "target_seconds": TARGETS["large_case_carotid_seconds"],
