@@ -574,21 +574,25 @@ def run_cta(with_gac: bool) -> dict:
 
 # ------------------------------------------------------------------------------------------ large case
 
-REVISION_TIMING = """\
+WARM_UP = {"stenosis": 0.7, "noise": 20.0, "seed": 0, "extent": (30.0, 30.0, 45.0)}
+"""``make_phantom`` arguments of the small case segmented once before any timing (numba compiles carotid's
+kernels on the first call), by ``main`` and by a revision timed with ``--versus``."""
+
+REVISION_TIMING = f"""\
 import json, sys, time
 import carotid
 from carotid.io import read_image
 from carotid.phantom import make_phantom
 from carotid.segment import SegmentParameters, segment
-warm = make_phantom(0.7, 20.0, 0, extent=(30.0, 30.0, 45.0))
+warm = make_phantom(**{WARM_UP!r})
 segment(warm.image, seeds_xyz=[warm.info["seeds_mm"]["CCA"]])
 volume = read_image(sys.argv[1])
 start = time.perf_counter()
 segment(volume, seeds_xyz=json.loads(sys.argv[2]), params=SegmentParameters())
-print(json.dumps({"seconds": time.perf_counter() - start, "carotid": carotid.__file__}))
+print(json.dumps({{"seconds": time.perf_counter() - start, "carotid": carotid.__file__}}))
 """
-"""What a revision's ``segment`` runs in :func:`revision_seconds`: the warm-up of ``main`` (numba
-compilation), then the timed call with the defaults."""
+"""The script a revision's carotid runs in :func:`revision_seconds`: the warm-up (``WARM_UP``), then the
+timed call with the defaults."""
 
 
 @contextlib.contextmanager
@@ -924,7 +928,7 @@ def main() -> None:
         f"{n_cases} family cases (seeds {seeds.start}-{seeds.stop - 1}); load average {os.getloadavg()}")
 
     # Warm-up: numba compiles carotid's kernels on the first call (~100 s); not part of any case's time.
-    warm = make_phantom(0.7, 20.0, 0, extent=(30.0, 30.0, 45.0))
+    warm = make_phantom(**WARM_UP)
     _, warm_seconds = timed(segment, warm.image, seeds_xyz=[warm.info["seeds_mm"]["CCA"]])
     log(f"warm-up segment (numba compilation) {warm_seconds:.1f} s")
     if variants or args.recorded_thickness or args.noise_scale != 1.0:
