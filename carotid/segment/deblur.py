@@ -39,6 +39,8 @@ refinement of a level set; the filters are scipy's.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy import ndimage
 
@@ -100,12 +102,98 @@ def refine(image: np.ndarray, phi: np.ndarray, spacing_kji, lumen: float, backgr
     ndarray, float32, same shape
         The refined level set (no longer a signed distance; within ``blur_mm`` of ``phi``).
     """
+    model = blur_model(image, phi, spacing_kji, lumen, background, blur_mm, exclude, normal=normal,
+                       level_mm=level_mm, linear_level=linear_level, slices=slices, thickness_mm=thickness_mm,
+                       neighbours=neighbours)
+    if model is None:
+        return phi
+    spacing, sigma_mm, phi0 = model.spacing, model.blur_mm, model.phi0
+    sigma_axes = model.sigma_mm
+    smoothing = np.hypot(sigma_axes, smooth_mm) / spacing
+    finer, share = None, None
+    if smooth_radius > 0:
+        finest = 0.5 * smooth_mm
+        near = np.abs(phi0) < model.band
+        scale = np.clip(smooth_radius * wall_radius(phi0, spacing, near, smooth_mm / smooth_radius + model.band),
+                        finest, smooth_mm)
+        if np.any(scale < smooth_mm):
+            finer = np.hypot(sigma_axes, finest) / spacing
+            share = np.zeros(phi0.shape, np.float32)
+            share[near] = (smooth_mm - scale) / (smooth_mm - finest)
+    step = np.float32(gain * sigma_mm)
+    out = phi0.copy()
+    for _ in range(iterations):
+        misfit = model_misfit(model, out)
+        speed = ndimage.gaussian_filter(misfit, smoothing)
+        if finer is not None:  # the speed at the finer scale where the lumen is narrow
+            speed += share * (ndimage.gaussian_filter(misfit, finer) - speed)
+        speed /= model.contrast
+        out = np.clip(out - step * speed, phi0 - np.float32(sigma_mm), phi0 + np.float32(sigma_mm))
+    result = np.array(phi, np.float32, copy=True)
+    result[model.box] = out
+    return result
+
+
+@dataclass
+class BlurModel:
+    """``refine``'s model of the image near a wall, within ``box``: ``M = seen_tissue + G * (contrast chi)``,
+    ``chi`` the lumen indicator of a level set with its partial-volume ramp.
+
+    Attributes
+    ----------
+    box : tuple of slices
+        The region of the image the model covers (the wall's band and the blur's reach).
+    spacing : ndarray, shape (3,)
+    blur_mm : float
+        The Gaussian's standard deviation within the slices, mm.
+    sigma_mm : ndarray, shape (3,)
+        Its standard deviation per axis (``model_blur``), mm.
+    band : float
+        Half-width (mm) of the band around the wall where the misfit is read.
+    ramp : float
+        Width (mm) of the partial-volume ramp (``ramp_width``).
+    phi0, crop : ndarray, float32, shape of the box
+        The starting level set and the image.
+    weight : ndarray of bool, shape of the box
+        Voxels whose misfit counts: the band, clear of what the model leaves out, no deeper than half a blur
+        width outside the starting wall.
+    seen_tissue, contrast : ndarray, float32, shape of the box
+        The blurred tissue level ``G * B`` and the lumen's contrast ``A - B`` over it.
+    """
+
+    box: tuple
+    spacing: np.ndarray
+    blur_mm: float
+    sigma_mm: np.ndarray
+    band: float
+    ramp: float
+    phi0: np.ndarray
+    crop: np.ndarray
+    weight: np.ndarray
+    seen_tissue: np.ndarray
+    contrast: np.ndarray
+
+
+def blur_model(image: np.ndarray, phi: np.ndarray, spacing_kji, lumen: float, background: float, blur_mm: float,
+               exclude: np.ndarray | None = None, normal: bool = True, level_mm: float = 0.0,
+               linear_level: bool = False, slices: bool = True, thickness_mm: float | None = None,
+               neighbours: bool = False) -> BlurModel | None:
+    """``refine``'s blurred model of the lumen around the wall of ``phi``: its levels, blur and band.
+
+    The tissue level is read along the wall normals of ``phi`` (``normal_background``), the lumen level on its
+    core with the blur taken out (``lumen_level``); the arguments are ``refine``'s.
+
+    Returns
+    -------
+    BlurModel or None
+        None when ``phi`` has no wall.
+    """
     spacing = np.asarray(spacing_kji, float)
     sigma_mm = float(blur_mm)
     band = 2.0 * sigma_mm + float(spacing.max())
     box = region_box(phi < band + 3.0 * sigma_mm, spacing, 3.0 * sigma_mm)
     if box is None:
-        return phi
+        return None
     phi0 = np.asarray(phi[box], np.float32)
     crop = np.asarray(image[box], np.float32)
     excluded = None if exclude is None else exclude[box]
@@ -125,39 +213,24 @@ def refine(image: np.ndarray, phi: np.ndarray, spacing_kji, lumen: float, backgr
     if normal:
         tissue = normal_background(crop, phi0, spacing, sigma_mm, excluded, tissue)
     sigma_axes = model_blur(sigma_mm, spacing, slices, thickness_mm)
-    sigma = sigma_axes / spacing
-    smoothing = np.hypot(sigma_axes, smooth_mm) / spacing
-    finer, share = None, None
-    if smooth_radius > 0:
-        finest = 0.5 * smooth_mm
-        near = np.abs(phi0) < band
-        scale = np.clip(smooth_radius * wall_radius(phi0, spacing, near, smooth_mm / smooth_radius + band),
-                        finest, smooth_mm)
-        if np.any(scale < smooth_mm):
-            finer = np.hypot(sigma_axes, finest) / spacing
-            share = np.zeros(phi0.shape, np.float32)
-            share[near] = (smooth_mm - scale) / (smooth_mm - finest)
-    ramp = np.float32(ramp_width(spacing))
-    step = np.float32(gain * sigma_mm)
-    seen_tissue = ndimage.gaussian_filter(tissue, sigma)
+    ramp = float(ramp_width(spacing))
+    seen_tissue = ndimage.gaussian_filter(tissue, sigma_axes / spacing)
     level = np.float32(lumen)
     if level_mm > 0:
         core = clear & (phi0 < -np.float32(max(2.0 * sigma_mm, float(spacing.max()))))
-        level = lumen_level(crop, tissue, phi0, core, spacing, sigma_axes, ramp, level_mm, lumen,
+        level = lumen_level(crop, tissue, phi0, core, spacing, sigma_axes, np.float32(ramp), level_mm, lumen,
                             (phi0 < band) if linear_level else None)
     contrast = np.maximum(level - tissue, np.float32(1e-6))
-    out = phi0.copy()
-    for _ in range(iterations):
-        lumen_part = ndimage.gaussian_filter(contrast * np.clip(np.float32(0.5) - out / ramp, 0, 1), sigma)
-        misfit = np.where(weight, crop - seen_tissue - lumen_part, 0)
-        speed = ndimage.gaussian_filter(misfit, smoothing)
-        if finer is not None:  # the speed at the finer scale where the lumen is narrow
-            speed += share * (ndimage.gaussian_filter(misfit, finer) - speed)
-        speed /= contrast
-        out = np.clip(out - step * speed, phi0 - np.float32(sigma_mm), phi0 + np.float32(sigma_mm))
-    result = np.array(phi, np.float32, copy=True)
-    result[box] = out
-    return result
+    return BlurModel(box, spacing, sigma_mm, sigma_axes, band, ramp, phi0, crop, weight, seen_tissue, contrast)
+
+
+def model_misfit(model: BlurModel, phi: np.ndarray) -> np.ndarray:
+    """``I - M``, the image less the model of the wall of ``phi`` (level set on ``model.box``, mm), on
+    ``model.weight`` (0 elsewhere); image units, float32, the box's shape."""
+    ramp = np.float32(model.ramp)
+    lumen_part = ndimage.gaussian_filter(model.contrast * np.clip(np.float32(0.5) - phi / ramp, 0, 1),
+                                         model.sigma_mm / model.spacing)
+    return np.where(model.weight, model.crop - model.seen_tissue - lumen_part, np.float32(0))
 
 
 def wall_radius(phi: np.ndarray, spacing, where: np.ndarray, reach_mm: float) -> np.ndarray:
