@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 import pytest
-from scipy import ndimage
+from scipy import ndimage, special
 
 from carotid.io import Volume
 from carotid.segment import SegmentParameters, calcium, deblur, segment, segmentation
@@ -589,8 +589,7 @@ def ramped_step(x, ramp, sigma):
     negative ``x``, mm) blurred by a Gaussian of ``sigma`` mm: the difference of ``F(u) = u Phi(u / sigma) +
     sigma phi(u / sigma)`` across the ramp, over its width."""
     def antiderivative(u):
-        return u * 0.5 * (1.0 + np.vectorize(math.erf)(u / (sigma * math.sqrt(2.0)))) + sigma * np.exp(
-            -0.5 * (u / sigma) ** 2) / math.sqrt(2.0 * math.pi)
+        return u * special.ndtr(u / sigma) + sigma * np.exp(-0.5 * (u / sigma) ** 2) / math.sqrt(2.0 * math.pi)
     return (antiderivative(0.5 * ramp - x) - antiderivative(-0.5 * ramp - x)) / ramp
 
 

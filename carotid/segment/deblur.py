@@ -107,8 +107,7 @@ def refine(image: np.ndarray, phi: np.ndarray, spacing_kji, lumen: float, backgr
                        neighbours=neighbours)
     if model is None:
         return phi
-    spacing, sigma_mm, phi0 = model.spacing, model.blur_mm, model.phi0
-    sigma_axes = model.sigma_mm
+    spacing, sigma_mm, sigma_axes, phi0 = model.spacing, model.blur_mm, model.sigma_mm, model.phi0
     smoothing = np.hypot(sigma_axes, smooth_mm) / spacing
     finer, share = None, None
     if smooth_radius > 0:
