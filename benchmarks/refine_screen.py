@@ -46,6 +46,7 @@ from carotid.phantom import make_phantom
 from carotid.phantom.family import sample_family
 from carotid.segment import SegmentParameters
 from refine_budget import captured_segment, rerun
+from rescan import _fmt
 
 FIGURES = ("dice", "leak_fraction", "nascet_error_points", "min_diameter_error_mm")
 REFINEMENT_FIELDS = frozenset(f.name for f in fields(SegmentParameters) if f.name.startswith("deblur_"))
@@ -130,12 +131,8 @@ def run_scan(seed: int, draw: int, variants: dict, cache: Path) -> dict:
         scored = score(rerun(entry["args"], entry["seeds_kji"], **overrides), entry["phantom"], entry["truth"])
         scan["results"][name] = {key: scored.get(key) for key in FIGURES}
     log(f"scan {seed}:{draw} minimal diameter error (mm): " + ", ".join(
-        f"{name} {_fmt(r['min_diameter_error_mm'])}" for name, r in scan["results"].items()))
+        f"{name} {_fmt(r['min_diameter_error_mm'], '+.3f')}" for name, r in scan["results"].items()))
     return scan
-
-
-def _fmt(value) -> str:
-    return "-" if value is None else f"{value:+.3f}"
 
 
 def summarise(scans: list[dict]) -> dict:
@@ -183,9 +180,11 @@ def main() -> None:
         results = pool.starmap(run_scan, [(seed, draw, variants, cache) for seed, draw in scans], chunksize=1)
     summary = summarise(results)
     for name, entry in summary.items():
+        worst = entry["min_diameter_error_worst"]
         log(f"{name}: NASCET {entry['nascet_error_points']}, minimal diameter {entry['min_diameter_error_mm']}, "
-            f"all four {entry['all']} of {entry['scans']}; median error {_fmt(entry['min_diameter_error_median_mm'])} "
-            f"mm, worst {entry['min_diameter_error_worst']['scan']} {_fmt(entry['min_diameter_error_worst']['mm'])}")
+            f"all four {entry['all']} of {entry['scans']}; median error "
+            f"{_fmt(entry['min_diameter_error_median_mm'], '+.3f')} mm, "
+            f"worst {worst['scan']} {_fmt(worst['mm'], '+.3f')}")
     write_results(options.name, {"git": git, "scans": [f"{s}:{d}" for s, d in scans], "variants": variants,
                                  "results": results, "summary": summary})
 

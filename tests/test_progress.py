@@ -20,8 +20,8 @@ from carotid.phantom import write_phantom
 from carotid.pipeline import PROGRESS_SECONDS, run
 from conftest import phantom
 
-# The demo's coarse chain with half a cycle (some 4000 steps: 20 s on a machine where a quarter cycle took
-# 9.9 s, too short for the silence test below to mean anything) and the default checkpoint interval.
+# The demo's coarse chain with half a cycle (some 4000 steps; a quarter cycle took 9.9 s on a fast machine,
+# too short for the silence test below to mean anything) and the default checkpoint interval.
 SETTINGS = {"surface": {"target_edge_mm": 0.8}, "mesh": {"layers": 2, "thickness_ratio": 0.15},
             "simulate": {"cycles": 0.5, "output_every": 20, "checkpoint_every": 500}}
 MAX_SILENCE_S = 10.0
