@@ -571,8 +571,7 @@ def lumen_levelset(phi: np.ndarray, stopped: np.ndarray | None, seeds_kji: np.nd
     Returns
     -------
     phi : ndarray, float32, same shape
-        Signed distance (mm) of the lumen, clamped to ``params.far_mm``; with ``params.keep_wall_values``, the
-        refined level set's own values within one voxel of the wall (``levelset.keep_front_values``).
+        Signed distance (mm) of the lumen, clamped to ``params.far_mm``.
     mask : ndarray, uint8, same shape
     handles_removed : list of dict
         ``handles.remove_handles``' report.
