@@ -344,41 +344,6 @@ def signed_distance(phi: np.ndarray, spacing_kji, far: float) -> np.ndarray:
     return out
 
 
-def keep_front_values(phi: np.ndarray, distance: np.ndarray, spacing_kji) -> np.ndarray:
-    """``distance`` with ``phi``'s own values within one voxel of its wall, where both lie on the same side.
-
-    ``signed_distance`` rebuilds the values next to the wall from the crossings of the grid edges (linear
-    interpolation) and their tangent planes; a reader that interpolates over several voxels (the cubic
-    spline of ``centerline.axes.SectionSampler``) then finds the wall up to a few hundredths of a millimetre
-    from where ``phi`` put it, more at a throat a few voxels across.  Where ``phi`` is itself a distance
-    near its wall (its gradient within about 10 % of unit length, as the refinement leaves it), its values
-    carry the wall more faithfully: they are kept at the voxels within one voxel (the largest spacing) of
-    it, unless the voxel or one of its 26 neighbours changed side between ``phi`` and ``distance`` (the
-    lumen's clean-up), where only ``distance`` is consistent.
-
-    Parameters
-    ----------
-    phi : ndarray, float32, shape (nk, nj, ni)
-        Distance-like level set, mm, negative inside.
-    distance : ndarray, float32, same shape
-        Signed distance (mm) of the set whose wall ``phi``'s is, up to the changed voxels.
-    spacing_kji : array_like, shape (3,)
-
-    Returns
-    -------
-    ndarray, float32, same shape
-    """
-    changed = np.flatnonzero((phi < 0).ravel() != (distance < 0).ravel())
-    keep = np.abs(phi) < np.float32(np.max(spacing_kji))
-    if changed.size:
-        kji = _unravel(changed, phi.shape)
-        offsets = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
-        near = (kji[:, None, :] + offsets[None]).reshape(-1, 3)
-        near = near[np.all((near >= 0) & (near < np.asarray(phi.shape)), axis=1)]
-        keep[tuple(near.T)] = False
-    return np.where(keep, phi, distance).astype(np.float32)
-
-
 @dataclass
 class EvolutionResult:
     """Outcome of ``evolve``: the level set and how it got there."""
