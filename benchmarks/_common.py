@@ -31,6 +31,7 @@ from carotid.io import Volume, to_sitk, write_json
 
 REPO = Path(__file__).resolve().parent.parent
 RESULTS_DIR = REPO / "benchmarks" / "results"
+RESULTS_PREFIX = "benchmarks/results/"
 PACKAGES = ("numpy", "scipy", "SimpleITK", "numba", "scikit-image", "carotid")
 
 
@@ -159,6 +160,9 @@ def git_state() -> dict:
     """The code a benchmark runs: HEAD, its branch, whether the working tree differs from it (the changed
     paths), a hash of the tracked diff and a hash of every ``carotid/**/*.py`` (untracked ones too).
 
+    ``dirty`` counts changes outside ``benchmarks/results/`` only: a result file written by an earlier run
+    (untracked, or tracked and rewritten) is no change to the code that runs; ``changed`` lists every path.
+
     Returns
     -------
     dict
@@ -172,7 +176,7 @@ def git_state() -> dict:
     for path in sorted((REPO / "carotid").rglob("*.py")):
         sources.update(str(path.relative_to(REPO)).encode() + b"\0" + path.read_bytes())
     return {"commit": git("rev-parse", "HEAD").strip(), "branch": git("rev-parse", "--abbrev-ref", "HEAD").strip(),
-            "dirty": bool(status), "changed": status,
+            "dirty": any(not line[3:].strip('"').startswith(RESULTS_PREFIX) for line in status), "changed": status,
             "tracked_diff_sha1": hashlib.sha1(git("diff", "HEAD").encode()).hexdigest(),
             "carotid_sources_sha1": sources.hexdigest()}
 
