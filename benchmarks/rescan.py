@@ -118,15 +118,16 @@ def expected_without_bias(cases: list[dict], key: str) -> float:
 
 def summarise(cases: list[dict]) -> dict:
     """Over the cases: median and worst bias and spread per figure; how many cases meet the limit (``all``: all
-    four of ``CRITERIA``) on every draw, on some, on none; the count meeting it on the first draw (``bench_segmentation``'s image) and the
-    count expected over rescans (the sum of the cases' meeting fractions), and per figure the count expected
-    without the cases' biases (``expected_without_bias``)."""
+    four of ``CRITERIA``) on every draw, on some, on none; the count meeting it on the first draw
+    (``bench_segmentation``'s image) and the count expected over rescans (the sum of the cases' meeting
+    fractions), and per figure the count expected without the cases' biases (``expected_without_bias``)."""
     out = {}
     for key in (*FIGURES, "all"):
         fractions = np.array([c["all_meeting_fraction"] if key == "all" else c[key]["meeting_fraction"]
                               for c in cases])
         first = [meets_all(c["draws"][0]) if key == "all" else meets(key, c["draws"][0][key]) for c in cases]
-        entry = {"every_draw": int(np.sum(fractions == 1.0)), "some_draws": int(np.sum((fractions > 0) & (fractions < 1))),
+        entry = {"every_draw": int(np.sum(fractions == 1.0)),
+                 "some_draws": int(np.sum((fractions > 0) & (fractions < 1))),
                  "no_draw": int(np.sum(fractions == 0.0)), "first_draw": int(sum(first)),
                  "expected": float(fractions.sum()), "cases": len(cases)}
         if key != "all":
