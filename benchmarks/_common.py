@@ -31,7 +31,7 @@ from carotid.io import Volume, to_sitk, write_json
 
 REPO = Path(__file__).resolve().parent.parent
 RESULTS_DIR = REPO / "benchmarks" / "results"
-RESULTS_PREFIX = "benchmarks/results/"
+RESULTS_PREFIX = RESULTS_DIR.relative_to(REPO).as_posix() + "/"
 PACKAGES = ("numpy", "scipy", "SimpleITK", "numba", "scikit-image", "carotid")
 
 

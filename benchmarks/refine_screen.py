@@ -31,7 +31,6 @@ variant 3-8 s a scan; the cache takes about 20 MB a scan.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import pickle
 from dataclasses import fields
@@ -46,7 +45,7 @@ from carotid.phantom import make_phantom
 from carotid.phantom.family import sample_family
 from carotid.segment import SegmentParameters
 from refine_budget import captured_segment, rerun
-from rescan import _fmt
+from rescan import _fmt, rescan_cases
 
 FIGURES = ("dice", "leak_fraction", "nascet_error_points", "min_diameter_error_mm")
 REFINEMENT_FIELDS = frozenset(f.name for f in fields(SegmentParameters) if f.name.startswith("deblur_"))
@@ -91,12 +90,12 @@ def missed_scans(path: Path) -> list[tuple[int, int]]:
     argparse.ArgumentTypeError
         When the file cannot be read as such a result.
     """
+    cases = rescan_cases(path)
     try:
-        cases = json.loads(Path(path).read_text())["cases"]
         return [(case["seed"], draw) for case in cases for draw, record in enumerate(case["draws"])
                 if not (meets("nascet_error_points", record["nascet_error_points"])
                         and meets("min_diameter_error_mm", record["min_diameter_error_mm"]))]
-    except (OSError, ValueError, KeyError, TypeError) as error:
+    except (KeyError, TypeError) as error:
         raise argparse.ArgumentTypeError(f"{path}: not a rescan.py result ({error})") from None
 
 

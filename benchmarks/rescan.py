@@ -145,6 +145,23 @@ def summarise(cases: list[dict]) -> dict:
     return out
 
 
+def rescan_cases(path: str) -> list[dict]:
+    """The ``cases`` of a ``rescan.py`` result file (an argparse ``type``).
+
+    Raises
+    ------
+    argparse.ArgumentTypeError
+        When the file cannot be read as such a result, so that argparse prints one line and exits with 2.
+    """
+    try:
+        cases = json.loads(Path(path).read_text())["cases"]
+    except (OSError, ValueError, KeyError, TypeError) as error:
+        raise argparse.ArgumentTypeError(f"{path}: not a rescan.py result ({error})") from None
+    if not isinstance(cases, list):
+        raise argparse.ArgumentTypeError(f"{path}: not a rescan.py result (its cases are not a list)")
+    return cases
+
+
 def log_summary(summary: dict) -> None:
     """One line per figure of ``summarise``'s counts."""
     for key, entry in summary.items():
@@ -167,15 +184,11 @@ def main() -> None:
                         help="scan every case in this modality (default: the family's draw)")
     parser.add_argument("--name", default=None,
                         help="results file (default rescan, with --variant rescan_variant)")
-    parser.add_argument("--summary-of", type=Path, default=None, metavar="RESCAN.json",
+    parser.add_argument("--summary-of", type=rescan_cases, default=None, metavar="RESCAN.json",
                         help="scan nothing: print the summary of an earlier result's cases")
     options = parser.parse_args()
     if options.summary_of is not None:
-        try:
-            cases = json.loads(options.summary_of.read_text())["cases"]
-        except (OSError, ValueError, KeyError, TypeError) as error:
-            parser.error(f"{options.summary_of}: not a rescan.py result ({error})")
-        log_summary(summarise(cases))
+        log_summary(summarise(options.summary_of))
         return
     if options.draws < 2:
         parser.error("--draws must be at least 2: the spread needs two scans")
